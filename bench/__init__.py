@@ -1,0 +1,1 @@
+"""Benchmarks: speed and memory targets, one JSON object per line (``bench/run``)."""

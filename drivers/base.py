@@ -1,0 +1,202 @@
+"""The roles a bench is made of, independent of transport.
+
+A procedure talks to a ``Drive`` and an ``AccelerationSensor`` and never to a
+bus, so a CANopen drive, a Modbus drive or a simulated one behind the virtual
+bus are interchangeable. Both roles are context managers: leaving the block,
+normally or by an exception, disables the drive; closing twice is harmless.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from enum import Enum
+from types import TracebackType
+
+import numpy as np
+import numpy.typing as npt
+
+from station.core import Trims
+
+
+class DriveState(Enum):
+    """CiA 402 power state machine states, decoded from the statusword."""
+
+    NOT_READY_TO_SWITCH_ON = "not ready to switch on"
+    SWITCH_ON_DISABLED = "switch on disabled"
+    READY_TO_SWITCH_ON = "ready to switch on"
+    SWITCHED_ON = "switched on"
+    OPERATION_ENABLED = "operation enabled"
+    QUICK_STOP_ACTIVE = "quick stop active"
+    FAULT_REACTION_ACTIVE = "fault reaction active"
+    FAULT = "fault"
+
+
+def decode_statusword(statusword: int) -> DriveState:
+    """CiA 402 table: state from bits 0-3, 5 and 6 of the statusword."""
+    masked = statusword & 0x6F
+    if masked & 0x4F == 0x00:
+        return DriveState.NOT_READY_TO_SWITCH_ON
+    if masked & 0x4F == 0x40:
+        return DriveState.SWITCH_ON_DISABLED
+    if masked == 0x21:
+        return DriveState.READY_TO_SWITCH_ON
+    if masked == 0x23:
+        return DriveState.SWITCHED_ON
+    if masked == 0x27:
+        return DriveState.OPERATION_ENABLED
+    if masked == 0x07:
+        return DriveState.QUICK_STOP_ACTIVE
+    if masked & 0x4F == 0x0F:
+        return DriveState.FAULT_REACTION_ACTIVE
+    if masked & 0x4F == 0x08:
+        return DriveState.FAULT
+    return DriveState.NOT_READY_TO_SWITCH_ON
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """CiA 301 identity object 0x1018."""
+
+    vendor_id: int
+    product_code: int
+    revision: int
+    serial_number: int
+
+
+@dataclass(frozen=True)
+class CalibrationRecord:
+    """Object 0x2101: when, where and how often the unit was calibrated."""
+
+    calibrated_at: int
+    station_id: int
+    count: int
+
+
+@dataclass(frozen=True)
+class SensorCapture:
+    """Samples streamed by the sensor: raw counts with their sample counters.
+
+    ``lost`` counts samples missing between consecutive counters (ICD.md §3:
+    the counter advances by one per SYNC, so gaps are losses).
+    """
+
+    counter: npt.NDArray[np.uint16]
+    counts: npt.NDArray[np.int16]
+    lsb_mps2: float
+    lost: int
+
+    @property
+    def acceleration(self) -> npt.NDArray[np.float64]:
+        """Samples in m/s², shape (n, 3) for the X, Y, Z axes."""
+        return self.counts.astype(np.float64) * self.lsb_mps2
+
+
+class Drive(ABC):
+    """A stepper drive with trimmable phase currents (ICD.md §2 or §4)."""
+
+    name: str = "drive"
+
+    @abstractmethod
+    def identity(self) -> DeviceIdentity: ...
+
+    @abstractmethod
+    def rated_current_mA(self) -> int: ...
+
+    @abstractmethod
+    def microsteps_per_fullstep(self) -> int: ...
+
+    @abstractmethod
+    def state(self) -> DriveState: ...
+
+    @abstractmethod
+    def enable(self) -> None:
+        """Walk the CiA 402 state machine to operation enabled (profile velocity)."""
+
+    @abstractmethod
+    def disable(self) -> None:
+        """Stop the motor and de-energise: target velocity 0, then disable voltage."""
+
+    @abstractmethod
+    def set_velocity(self, microsteps_per_s: int) -> None: ...
+
+    @abstractmethod
+    def set_amplitude(self, amplitude_mA: int) -> None: ...
+
+    @abstractmethod
+    def write_trims(self, trims: Trims) -> None:
+        """Write the four trims (rounded to the drive's integers); effective at next SYNC."""
+
+    @abstractmethod
+    def read_trims(self) -> Trims: ...
+
+    @abstractmethod
+    def store(self) -> None:
+        """Persist all parameters to EEPROM (CiA 301 0x1010:01 'save')."""
+
+    @abstractmethod
+    def reset(self) -> None:
+        """Reset the drive (it reloads stored parameters) and wait until it is back."""
+
+    @abstractmethod
+    def read_calibration_record(self) -> CalibrationRecord: ...
+
+    @abstractmethod
+    def write_calibration_record(self, record: CalibrationRecord) -> None: ...
+
+    @abstractmethod
+    def close(self) -> None:
+        """Leave the drive disabled and release the transport; safe to call twice."""
+
+    def __enter__(self) -> Drive:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class AccelerationSensor(ABC):
+    """A MEMS acceleration sensor streaming one sample per SYNC (ICD.md §3)."""
+
+    name: str = "sensor"
+
+    @abstractmethod
+    def identity(self) -> DeviceIdentity: ...
+
+    @abstractmethod
+    def range_g(self) -> int: ...
+
+    @abstractmethod
+    def set_range_g(self, range_g: int) -> None: ...
+
+    @abstractmethod
+    def lsb_mps2(self) -> float:
+        """Sensitivity read from the device (0x2001), m/s² per LSB."""
+
+    @abstractmethod
+    def start_capture(self) -> None:
+        """Start keeping streamed samples (previous ones are discarded)."""
+
+    @abstractmethod
+    def stop_capture(self) -> SensorCapture:
+        """Stop keeping samples and return those kept since ``start_capture``."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Release the transport; safe to call twice."""
+
+    def __enter__(self) -> AccelerationSensor:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()

@@ -1,0 +1,205 @@
+"""The station's command line (contract: shared/spec/CLI.md).
+
+Thin on purpose: parse, call one procedure, print. Data goes to stdout (one
+JSON document with ``--json``), logs and progress to stderr. Exit codes:
+0 success, 1 unit failed a limit, 2 usage/recipe/input error (nothing done),
+3 station or device error, or aborted.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Annotated, Any
+
+import click
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from station import __version__
+from station.core import Effect, LoadKind
+from station.errors import ExitCode, InputError, StationError
+from station.schedules import Hold, ScheduleName
+from station.serials import parse_serial
+
+log = logging.getLogger("station")
+
+stdout = Console(soft_wrap=True)
+stderr = Console(stderr=True)
+
+app = typer.Typer(
+    name="station",
+    help="End-of-line calibration station for hybrid stepper motor drives.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+sim_app = typer.Typer(
+    help="The simulated bench: recordings and units whose truth is known.",
+    no_args_is_help=True,
+)
+app.add_typer(sim_app, name="sim")
+
+JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON document on stdout.")]
+NO_EFFECTS = "none"
+
+
+@app.callback()
+def _configure(
+    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More log detail on stderr.")] = 0,
+) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(
+        level=level,
+        format="%(message)s",
+        handlers=[RichHandler(console=stderr, show_path=False, rich_tracebacks=False)],
+        force=True,
+    )
+    # canopen logs every SDO at INFO; that is noise for an operator.
+    logging.getLogger("canopen").setLevel(max(level, logging.WARNING))
+    logging.getLogger("can").setLevel(max(level, logging.WARNING))
+
+
+def _emit(doc: Any, as_json: bool, human: Any = None) -> None:
+    if as_json:
+        stdout.out(json.dumps(doc, indent=2), highlight=False)
+    else:
+        stdout.print(human if human is not None else doc)
+
+
+@contextmanager
+def _progress(description: str, enabled: bool = True) -> Iterator[Any]:
+    """Rich progress on stderr, so stdout stays clean for data."""
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[phase]}"),
+               TimeElapsedColumn())
+    with Progress(*columns, console=stderr, transient=True, disable=not enabled) as progress:
+        task = progress.add_task(description, total=None, phase="")
+
+        def update(done: int, total: int, hold: Hold) -> None:
+            progress.update(task, completed=done, total=total, phase=hold.phase.value)
+
+        yield update
+
+
+def _parse_effects(values: list[str]) -> frozenset[Effect] | None:
+    """``--effect`` given: exactly those (``none`` for none); absent: the unit's own."""
+    if not values:
+        return None
+    effects: set[Effect] = set()
+    for value in values:
+        if value == NO_EFFECTS:
+            continue
+        try:
+            effects.add(Effect(value))
+        except ValueError:
+            known = ", ".join([e.value for e in Effect] + [NO_EFFECTS])
+            raise InputError(f"unknown effect {value!r}; known effects: {known}") from None
+    if NO_EFFECTS in values and effects:
+        raise InputError(f"--effect {NO_EFFECTS} cannot be combined with other effects")
+    return frozenset(effects)
+
+
+@sim_app.command("record")
+def sim_record(
+    out: Annotated[Path, typer.Argument(help="Recording to write (.asc, .blf, .log, .csv or .mf4).")],
+    serial: Annotated[str, typer.Option("--serial", help="Serial label of the simulated unit, e.g. SN123.")],
+    schedule: Annotated[ScheduleName, typer.Option("--schedule", help="What the drive is made to do.")],
+    effect: Annotated[list[str] | None, typer.Option(
+        "--effect", help="Physics to switch on (repeatable; 'none' for none). Default: the unit's own.")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the sensor noise and frame losses.")] = 0,
+    load: Annotated[LoadKind, typer.Option("--load", help="Mechanical load on the motor.")] = LoadKind.DISK,
+    loss: Annotated[float, typer.Option("--loss", help="Fraction of frames the logger drops.", min=0.0, max=0.5)] = 0.0,
+    noise_ug: Annotated[float | None, typer.Option(
+        "--noise-ug", help="Sensor noise density in µg/√Hz (default: the unit's).", min=0.0)] = None,
+    truth: Annotated[Path | None, typer.Option(
+        "--truth", help="Where to write the truth file (never beside the recording).")] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Record a run of the simulated bench, with its truth in a separate file."""
+    from station.sim.record import SimRecordRequest, record_simulation
+
+    request = SimRecordRequest(
+        out=out,
+        serial=parse_serial(serial),
+        schedule=schedule,
+        effects=_parse_effects(effect or []),
+        seed=seed,
+        load=load,
+        loss=loss,
+        noise_density_ug=noise_ug,
+        truth=truth,
+    )
+    request.validate()
+    with _progress(f"recording {request.serial}", enabled=not as_json) as update:
+        result = record_simulation(request, on_progress=update)
+    doc = result.as_dict()
+    _emit(doc, as_json, human=_table("simulated recording", doc))
+
+
+@sim_app.command("unit")
+def sim_unit(
+    serial: Annotated[str, typer.Argument(help="Serial label of the simulated unit, e.g. SN123.")],
+    effect: Annotated[list[str] | None, typer.Option(
+        "--effect", help="Override the unit's concealed effects (repeatable; 'none' for none).")] = None,
+    load: Annotated[LoadKind, typer.Option("--load", help="Mechanical load on the motor.")] = LoadKind.DISK,
+    amplitude_mA: Annotated[float, typer.Option("--amplitude-mA", help="Operating current I.", min=1.0)] = 1000.0,
+    electrical_hz: Annotated[float, typer.Option("--electrical-hz", help="Operating electrical frequency.")] = 20.0,
+    as_json: JsonOption = False,
+) -> None:
+    """Reveal a simulated unit: its concealed imperfections and its optimal trims."""
+    from station.sim.record import describe_unit
+
+    doc = describe_unit(
+        parse_serial(serial),
+        load=load,
+        effects=_parse_effects(effect or []),
+        amplitude_mA=amplitude_mA,
+        electrical_hz=electrical_hz,
+    )
+    _emit(doc, as_json, human=_table(f"simulated unit {doc['serial']}", doc))
+
+
+def _table(title: str, doc: dict[str, Any]) -> Table:
+    table = Table(title=title, show_header=False)
+    table.add_column("key", style="bold")
+    table.add_column("value")
+    for key, value in doc.items():
+        text = json.dumps(value) if isinstance(value, dict | list) else str(value)
+        table.add_row(key, text)
+    return table
+
+
+@app.command("version")
+def version() -> None:
+    """Print the station software version."""
+    stdout.print(__version__)
+
+
+def main() -> None:
+    """Entry point: map every failure to CLI.md's exit codes."""
+    try:
+        result = app(standalone_mode=False)
+    except click.exceptions.UsageError as exc:
+        exc.show(file=sys.stderr)
+        sys.exit(ExitCode.USAGE)
+    except click.exceptions.ClickException as exc:
+        exc.show(file=sys.stderr)
+        sys.exit(ExitCode.USAGE)
+    except (click.exceptions.Abort, KeyboardInterrupt):
+        stderr.print("[bold red]aborted[/]")
+        sys.exit(ExitCode.STATION)
+    except StationError as exc:
+        stderr.print(f"[bold red]error:[/] {exc}", highlight=False)
+        sys.exit(exc.exit_code)
+    sys.exit(result if isinstance(result, int) else ExitCode.OK)
+
+
+if __name__ == "__main__":
+    main()

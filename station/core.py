@@ -1,0 +1,66 @@
+"""Vocabulary shared by the physics, the devices, the drivers and the CLI."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from enum import StrEnum
+
+GAIN_UNITY = 10000
+"""Gains are in 1/10000 (ICD.md): 10000 means 1.0."""
+
+
+class Effect(StrEnum):
+    """Physics beyond the paper's model, named as in CLI.md's vocabulary."""
+
+    FLUX_HARMONICS = "flux_harmonics"
+    DETENT_TORQUE = "detent_torque"
+    RELUCTANCE_TORQUE = "reluctance_torque"
+    LOAD_RESONANCE = "load_resonance"
+    CURRENT_DISTORTION = "current_distortion"
+    CURRENT_LOOP_LAG = "current_loop_lag"
+    FRICTION = "friction"
+    SENSOR_CLOCK_DRIFT = "sensor_clock_drift"
+
+
+class LoadKind(StrEnum):
+    """The mechanical loads of the paper: a disk on the shaft, or the belt pan unit."""
+
+    DISK = "disk"
+    BELT = "belt"
+
+
+@dataclass(frozen=True)
+class Trims:
+    """The drive's four current trims (ICD.md §2, object 0x2100).
+
+    Floats, because estimates are; the drive stores integers (see ``rounded``).
+    """
+
+    offset_a_mA: float = 0.0
+    offset_b_mA: float = 0.0
+    gain_a: float = float(GAIN_UNITY)
+    gain_b: float = float(GAIN_UNITY)
+
+    def rounded(self) -> Trims:
+        return Trims(
+            float(round(self.offset_a_mA)),
+            float(round(self.offset_b_mA)),
+            float(round(self.gain_a)),
+            float(round(self.gain_b)),
+        )
+
+    def as_dict(self) -> dict[str, float]:
+        """The JSON object CLI.md prescribes for trims."""
+        return {k: float(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, float]) -> Trims:
+        return cls(
+            float(data["offset_a_mA"]),
+            float(data["offset_b_mA"]),
+            float(data["gain_a"]),
+            float(data["gain_b"]),
+        )
+
+
+NOMINAL_TRIMS = Trims()

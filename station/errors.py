@@ -1,0 +1,69 @@
+"""One exception family for the whole station.
+
+Every failure the station can meet is a ``StationError``; its ``exit_code``
+is what the CLI returns (CLI.md: 2 for usage, recipe or input errors where
+nothing was done, 3 for station or device errors). Device errors keep the
+device's own code (SDO abort code, Modbus exception code) so that a technician
+can look it up in the device manual.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+
+class ExitCode(IntEnum):
+    """Process exit codes promised by CLI.md."""
+
+    OK = 0
+    FAILED_LIMIT = 1
+    USAGE = 2
+    STATION = 3
+
+
+class StationError(Exception):
+    """Root of every error the station raises on purpose."""
+
+    exit_code: ExitCode = ExitCode.STATION
+
+
+class InputError(StationError):
+    """Bad input from the operator or a file: nothing was done."""
+
+    exit_code = ExitCode.USAGE
+
+
+class RecordingError(InputError):
+    """A recording or its metadata cannot be read as ICD.md §5 describes."""
+
+
+class DeviceError(StationError):
+    """A device misbehaved or could not be reached."""
+
+    def __init__(self, device: str, message: str) -> None:
+        super().__init__(f"{device}: {message}")
+        self.device = device
+
+
+class DeviceTimeout(DeviceError):
+    """A device did not answer within its deadline."""
+
+
+class SdoAbort(DeviceError):
+    """The device refused an SDO transfer; ``code`` is the CiA 301 abort code."""
+
+    def __init__(self, device: str, index: int, subindex: int, code: int) -> None:
+        super().__init__(
+            device, f"SDO 0x{index:04X}:{subindex:02X} aborted with 0x{code:08X}"
+        )
+        self.index = index
+        self.subindex = subindex
+        self.code = code
+
+
+class DeviceStateError(DeviceError):
+    """The device is not in the state the procedure needs (e.g. CiA 402 fault)."""
+
+
+class IdentityMismatch(DeviceError):
+    """The unit on the bench is not the unit the operator named."""

@@ -1,0 +1,25 @@
+"""Where the station keeps its files when nobody says otherwise.
+
+``STATION_HOME`` (default ``~/.station``) holds the simulated units' EEPROM
+state, truth files of simulated recordings, and by default the database and
+run recordings. Tests point it at a temporary directory.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def station_home() -> Path:
+    return Path(os.environ.get("STATION_HOME", Path.home() / ".station")).expanduser()
+
+
+def sim_state_dir() -> Path:
+    """EEPROM images of simulated units, one file per serial."""
+    return station_home() / "sim" / "eeprom"
+
+
+def truth_dir() -> Path:
+    """Truth files of simulated recordings, kept away from the recordings."""
+    return station_home() / "truth"

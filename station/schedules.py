@@ -1,0 +1,177 @@
+"""Motion schedules: what the drive is told to do, hold by hold.
+
+A schedule is data (a tuple of holds), so the same runner drives a simulated
+bench or a real one, and a recording can name the schedule it followed. Every
+hold lasts a whole number of electrical periods at its speed, because the
+demodulation downstream integrates over whole periods.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from enum import StrEnum
+
+from station.core import GAIN_UNITY, NOMINAL_TRIMS, Trims
+
+
+class ScheduleName(StrEnum):
+    """Schedules that ``station sim record`` knows by name (CLI.md)."""
+
+    CALIBRATION = "calibration"
+    CHARACTERIZATION = "characterization"
+
+
+class Phase(StrEnum):
+    """What a hold is for; recorded as a label so people can read a run back."""
+
+    STANDSTILL = "standstill"
+    BASELINE = "baseline"
+    SWEEP_OFFSET_A = "sweep_offset_a"
+    SWEEP_OFFSET_B = "sweep_offset_b"
+    SWEEP_GAIN = "sweep_gain"
+    CONDITION = "condition"
+    STEP_OFFSET_A = "step_offset_a"
+    STEP_OFFSET_B = "step_offset_b"
+    STEP_GAIN = "step_gain"
+    STOP = "stop"
+
+
+@dataclass(frozen=True)
+class Hold:
+    """Hold velocity, amplitude and trims for ``cycles`` SYNC periods."""
+
+    phase: Phase
+    velocity: int
+    amplitude_mA: int
+    trims: Trims
+    cycles: int
+
+
+@dataclass(frozen=True)
+class Schedule:
+    name: str
+    holds: tuple[Hold, ...]
+
+    @property
+    def cycles(self) -> int:
+        return sum(h.cycles for h in self.holds)
+
+
+def velocity_for(electrical_hz: float, microsteps: int) -> int:
+    """Microsteps/s for an electrical frequency: one electrical period is 4 full steps."""
+    return round(electrical_hz * 4 * microsteps)
+
+
+def cycles_for(seconds: float, electrical_hz: float, sync_period_s: float) -> int:
+    """SYNC cycles covering at least ``seconds`` and a whole number of electrical periods."""
+    if electrical_hz == 0:
+        return max(1, round(seconds / sync_period_s))
+    period = 1.0 / abs(electrical_hz)
+    periods = max(1, math.ceil(seconds / period - 1e-9))
+    return max(1, round(periods * period / sync_period_s))
+
+
+def _linspace_int(start: int, stop: int, points: int) -> list[int]:
+    if points == 1:
+        return [round((start + stop) / 2)]
+    return [round(start + (stop - start) * i / (points - 1)) for i in range(points)]
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """The paper's calibration experiment, parameterised (section 3.1)."""
+
+    electrical_hz: float = 20.0
+    amplitude_mA: int = 1000
+    offset_span_mA: int = 500
+    offset_points: int = 11
+    gain_low: int = 7000
+    gain_high: int = 13000
+    gain_points: int = 11
+    dwell_s: float = 1.0
+    standstill_s: float = 0.3
+
+
+def calibration_schedule(
+    plan: SweepPlan, *, microsteps: int = 256, sync_period_s: float = 0.001
+) -> Schedule:
+    """Standstill, baseline, offset A sweep, offset B sweep, gain split sweep, stop.
+
+    The sweeps are open loop (phase B held at its nominal trim while A is
+    swept, and so on), so a recording's content does not depend on any online
+    estimate; the paper's eq. (16) makes the two offsets act on orthogonal
+    phasors, so the A sweep's minimum does not depend on B's value.
+    """
+    v = velocity_for(plan.electrical_hz, microsteps)
+    dwell = cycles_for(plan.dwell_s, plan.electrical_hz, sync_period_s)
+    still = cycles_for(plan.standstill_s, 0.0, sync_period_s)
+    amp = plan.amplitude_mA
+    holds: list[Hold] = [
+        Hold(Phase.STANDSTILL, 0, amp, NOMINAL_TRIMS, still),
+        Hold(Phase.BASELINE, v, amp, NOMINAL_TRIMS, dwell),
+    ]
+    for offset in _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points):
+        holds.append(Hold(Phase.SWEEP_OFFSET_A, v, amp, replace(NOMINAL_TRIMS, offset_a_mA=offset), dwell))
+    for offset in _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points):
+        holds.append(Hold(Phase.SWEEP_OFFSET_B, v, amp, replace(NOMINAL_TRIMS, offset_b_mA=offset), dwell))
+    for gain_a in _linspace_int(plan.gain_low, plan.gain_high, plan.gain_points):
+        trims = replace(NOMINAL_TRIMS, gain_a=gain_a, gain_b=2 * GAIN_UNITY - gain_a)
+        holds.append(Hold(Phase.SWEEP_GAIN, v, amp, trims, dwell))
+    holds.append(Hold(Phase.STOP, 0, amp, NOMINAL_TRIMS, still))
+    return Schedule(ScheduleName.CALIBRATION.value, tuple(holds))
+
+
+@dataclass(frozen=True)
+class CharacterizationPlan:
+    """Conditions that make the effects separable (issue: diagnose).
+
+    Several speeds in both directions tell order-locked effects from
+    fixed-frequency ones and show direction dependence; three currents show
+    how each term scales with I; small trim steps at every condition let the
+    trims be re-estimated per condition (drift of "constant" parameters).
+    """
+
+    electrical_hz: Sequence[float] = (10.0, 20.0, 35.0)
+    amplitudes_mA: Sequence[int] = (600, 800, 1000)
+    offset_step_mA: int = 40
+    gain_step: int = 400
+    settle_s: float = 0.8
+    step_s: float = 0.5
+    standstill_s: float = 0.3
+
+
+def characterization_schedule(
+    plan: CharacterizationPlan, *, microsteps: int = 256, sync_period_s: float = 0.001
+) -> Schedule:
+    still = cycles_for(plan.standstill_s, 0.0, sync_period_s)
+    top = max(plan.amplitudes_mA)
+    holds: list[Hold] = [Hold(Phase.STANDSTILL, 0, top, NOMINAL_TRIMS, still)]
+    for direction in (1, -1):
+        for hz in plan.electrical_hz:
+            v = direction * velocity_for(hz, microsteps)
+            settle = cycles_for(plan.settle_s, hz, sync_period_s)
+            step = cycles_for(plan.step_s, hz, sync_period_s)
+            for amp in plan.amplitudes_mA:
+                steps = (
+                    (Phase.STEP_OFFSET_A, replace(NOMINAL_TRIMS, offset_a_mA=plan.offset_step_mA)),
+                    (Phase.STEP_OFFSET_B, replace(NOMINAL_TRIMS, offset_b_mA=plan.offset_step_mA)),
+                    (Phase.STEP_GAIN, replace(
+                        NOMINAL_TRIMS,
+                        gain_a=GAIN_UNITY + plan.gain_step,
+                        gain_b=GAIN_UNITY - plan.gain_step,
+                    )),
+                )
+                holds.append(Hold(Phase.CONDITION, v, amp, NOMINAL_TRIMS, settle))
+                holds.extend(Hold(phase, v, amp, trims, step) for phase, trims in steps)
+    holds.append(Hold(Phase.STOP, 0, top, NOMINAL_TRIMS, still))
+    return Schedule(ScheduleName.CHARACTERIZATION.value, tuple(holds))
+
+
+def named_schedule(name: ScheduleName, *, microsteps: int = 256, sync_period_s: float = 0.001) -> Schedule:
+    if name is ScheduleName.CALIBRATION:
+        return calibration_schedule(SweepPlan(), microsteps=microsteps, sync_period_s=sync_period_s)
+    return characterization_schedule(
+        CharacterizationPlan(), microsteps=microsteps, sync_period_s=sync_period_s
+    )

@@ -1,0 +1,278 @@
+"""``station sim record`` and ``station sim unit``: simulated runs with known truth.
+
+The recording is made the way a real bench makes one: the simulated devices
+sit on a virtual CAN bus, the station drives them through its ordinary
+drivers and SYNC clock, and the recorder logs what the bus carried. Only the
+truth (the unit's concealed parameters and its optimal trims) comes from the
+simulator directly, and it goes to a separate file away from the recording so
+an analysis cannot peek at it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+from drivers.canbus import BusConfig, SteppedSync, open_network
+from drivers.canopen_drive import CanopenDrive
+from drivers.canopen_sensor import CanopenSensor
+from station import __version__
+from station.core import Effect, LoadKind, Trims
+from station.errors import IdentityMismatch, InputError
+from station.paths import sim_state_dir, truth_dir
+from station.physics.optimum import optimal_trims
+from station.physics.params import UnitParams, derive_unit
+from station.recording import (
+    Axis,
+    RecordingMetadata,
+    RecordingWriter,
+    SimulatedClock,
+    log_format_for,
+    metadata_path_for,
+    write_json_atomically,
+)
+from station.runner import ProgressCallback, run_schedule
+from station.schedules import Schedule, ScheduleName, SweepPlan, named_schedule
+from station.serials import Serial
+from station.sim.bench import SimBench, SimBenchConfig
+from station.sim.eeprom import Eeprom
+
+TRUTH_FORMAT: Final = "hsm-truth/1"
+SYNC_PERIOD_S: Final = 0.001
+OPERATING_POINT: Final = SweepPlan()
+"""The calibration operating point; optimal trims are quoted for it."""
+
+
+@dataclass(frozen=True)
+class SimRecordRequest:
+    out: Path
+    serial: Serial
+    schedule: ScheduleName
+    effects: frozenset[Effect] | None
+    seed: int = 0
+    load: LoadKind = LoadKind.DISK
+    loss: float = 0.0
+    noise_density_ug: float | None = None
+    truth: Path | None = None
+
+    @property
+    def truth_path(self) -> Path:
+        if self.truth is not None:
+            return self.truth
+        digest = hashlib.sha256(str(self.out.resolve()).encode()).hexdigest()[:10]
+        return truth_dir() / f"{self.out.stem}-{digest}.truth.json"
+
+    def validate(self) -> None:
+        """Refuse bad output paths before any bus traffic (exit code 2, nothing written)."""
+        log_format_for(self.out)
+        _check_writable_file(self.out, "output")
+        if not 0.0 <= self.loss < 1.0:
+            raise InputError(f"--loss must be in [0, 1), got {self.loss}")
+        truth = self.truth_path
+        if truth.resolve().parent == self.out.resolve().parent:
+            raise InputError(
+                f"truth file {truth} must not sit beside the recording; choose another directory"
+            )
+        if self.truth is not None:
+            _check_writable_file(truth, "truth")
+
+
+def _check_writable_file(path: Path, what: str) -> None:
+    if path.exists() and path.is_dir():
+        raise InputError(f"{what} {path} is a directory")
+    parent = path.parent if str(path.parent) else Path(".")
+    if not parent.is_dir():
+        raise InputError(f"{what} directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{what} directory {parent} is not writable")
+
+
+@dataclass(frozen=True)
+class SimRecordResult:
+    recording: Path
+    metadata: Path
+    truth: Path
+    serial: str
+    schedule: str
+    cycles: int
+    frames_seen: int
+    frames_recorded: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "recording": str(self.recording),
+            "truth": str(self.truth),
+            "metadata": str(self.metadata),
+            "serial": self.serial,
+            "schedule": self.schedule,
+            "cycles": self.cycles,
+            "frames_seen": self.frames_seen,
+            "frames_recorded": self.frames_recorded,
+        }
+
+
+def _metadata(unit: UnitParams, request: SimRecordRequest, *, microsteps: int, rated_mA: int,
+              lsb: float, config: SimBenchConfig, schedule: str) -> RecordingMetadata:
+    return RecordingMetadata(
+        serial=request.serial.label,
+        drive_node=config.drive_node,
+        sensor_node=config.sensor_node,
+        sync_period_s=config.sync_period_s,
+        microsteps_per_fullstep=microsteps,
+        rotor_teeth=unit.rotor_teeth,
+        rated_current_mA=rated_mA,
+        sensor_lsb_mps2=lsb,
+        tangential_axis=Axis(unit.sensor.tangential_axis),
+        sensor_radius_m=unit.sensor.radius_m,
+        gear_ratio=unit.gear_ratio,
+        extra={
+            "schedule": schedule,
+            "bench": "sim",
+            "load": request.load.value,
+            "station_software": __version__,
+            "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        },
+    )
+
+
+def record_simulation(
+    request: SimRecordRequest, *, on_progress: ProgressCallback | None = None
+) -> SimRecordResult:
+    """Run the named schedule on a simulated bench and record it (ICD.md §5)."""
+    request.validate()
+    schedule = named_schedule(request.schedule, sync_period_s=SYNC_PERIOD_S)
+    return record_schedule(request, schedule, on_progress=on_progress)
+
+
+def record_schedule(
+    request: SimRecordRequest, schedule: Schedule, *, on_progress: ProgressCallback | None = None
+) -> SimRecordResult:
+    """Record any schedule on a simulated bench (benchmarks and tests use their own)."""
+    request.validate()
+    unit = derive_unit(
+        request.serial.label,
+        load=request.load,
+        effects=request.effects,
+        noise_density_ug=request.noise_density_ug,
+    )
+    config = SimBenchConfig(
+        serial=request.serial.label,
+        load=request.load,
+        effects=unit.effects,
+        seed=request.seed,
+        channel=f"station-sim-{uuid.uuid4().hex}",
+        sync_period_s=SYNC_PERIOD_S,
+        noise_density_ug=request.noise_density_ug,
+    )
+    bus = BusConfig.virtual(config.channel)
+    with SimBench(config) as bench, open_network(bus) as network:
+        bench.start()
+        with CanopenDrive(network, config.drive_node) as drive, \
+                CanopenSensor(network, config.sensor_node) as sensor:
+            identity = drive.identity()
+            if identity.serial_number != request.serial.number:
+                raise IdentityMismatch(
+                    drive.name,
+                    f"reports serial {identity.serial_number}, expected {request.serial.number}",
+                )
+            microsteps = drive.microsteps_per_fullstep()
+            metadata = _metadata(
+                unit, request, microsteps=microsteps, rated_mA=drive.rated_current_mA(),
+                lsb=sensor.lsb_mps2(), config=config, schedule=schedule.name,
+            )
+            clock = SteppedSync(
+                network,
+                period_s=config.sync_period_s,
+                expected_cob_ids={
+                    0x180 + config.sensor_node: sensor.name,
+                    0x180 + config.drive_node: drive.name,
+                    0x280 + config.drive_node: drive.name,
+                },
+            )
+            with RecordingWriter(
+                request.out,
+                metadata,
+                clock=SimulatedClock(config.sync_period_s),
+                loss_probability=request.loss,
+                seed=request.seed,
+            ) as recorder:
+                network.notifier.add_listener(recorder)
+                try:
+                    run_schedule(schedule, drive, clock, on_progress=on_progress)
+                finally:
+                    network.notifier.remove_listener(recorder)
+                    clock.close()
+                recorder.commit()
+    truth = _truth(unit, request, schedule.name, schedule.cycles)
+    truth_path = request.truth_path
+    truth_path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomically(truth_path, truth)
+    return SimRecordResult(
+        recording=request.out,
+        metadata=metadata_path_for(request.out),
+        truth=truth_path,
+        serial=request.serial.label,
+        schedule=schedule.name,
+        cycles=schedule.cycles,
+        frames_seen=recorder.frames_seen,
+        frames_recorded=recorder.frames_written,
+    )
+
+
+def _operating_optimum(unit: UnitParams) -> Trims:
+    return optimal_trims(
+        unit,
+        amplitude_mA=float(OPERATING_POINT.amplitude_mA),
+        electrical_hz=OPERATING_POINT.electrical_hz,
+        sync_period_s=SYNC_PERIOD_S,
+    )
+
+
+def _truth(unit: UnitParams, request: SimRecordRequest, schedule: str, cycles: int) -> dict[str, Any]:
+    return {
+        "format": TRUTH_FORMAT,
+        "recording": str(request.out.resolve()),
+        "serial": request.serial.label,
+        "schedule": schedule,
+        "cycles": cycles,
+        "seed": request.seed,
+        "load": request.load.value,
+        "frame_loss": request.loss,
+        "effects": sorted(e.value for e in unit.effects),
+        "operating_point": {
+            "amplitude_mA": OPERATING_POINT.amplitude_mA,
+            "electrical_hz": OPERATING_POINT.electrical_hz,
+        },
+        "optimal_trims": _operating_optimum(unit).as_dict(),
+        "unit": unit.to_dict(),
+    }
+
+
+def describe_unit(
+    serial: Serial,
+    *,
+    load: LoadKind = LoadKind.DISK,
+    effects: frozenset[Effect] | None = None,
+    amplitude_mA: float = float(OPERATING_POINT.amplitude_mA),
+    electrical_hz: float = OPERATING_POINT.electrical_hz,
+) -> dict[str, Any]:
+    """What ``station sim unit`` reveals: concealed imperfections and optimal trims."""
+    unit = derive_unit(serial.label, load=load, effects=effects)
+    optimum = optimal_trims(unit, amplitude_mA=amplitude_mA, electrical_hz=electrical_hz,
+                            sync_period_s=SYNC_PERIOD_S)
+    truth = unit.to_dict()
+    stored = Eeprom.peek(sim_state_dir(), serial.label)
+    return {
+        "serial": serial.label,
+        "optimal_trims": optimum.as_dict(),
+        "effects": truth.get("effects", []),
+        "operating_point": {"amplitude_mA": amplitude_mA, "electrical_hz": electrical_hz},
+        "load": load.value,
+        "stored_trims": stored.as_dict() if stored is not None else None,
+        "unit": truth,
+    }

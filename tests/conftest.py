@@ -1,0 +1,48 @@
+"""Guards every test: private station home, and nothing left running.
+
+A calibration station that leaks a bus handle or a notifier thread per run
+falls over after a shift; so a test that leaves one behind fails here.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can.interfaces.virtual as virtual_bus
+import pytest
+
+_GRACE_S = 2.0
+
+
+def _open_virtual_queues() -> int:
+    with virtual_bus.channels_lock:
+        return sum(len(queues) for queues in virtual_bus.channels.values())
+
+
+@pytest.fixture(autouse=True)
+def station_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Each test gets its own STATION_HOME (EEPROM state, truth files, databases)."""
+    home = tmp_path / "station-home"
+    monkeypatch.setenv("STATION_HOME", str(home))
+    monkeypatch.delenv("STATION_DB", raising=False)
+    monkeypatch.delenv("STATION_BENCH", raising=False)
+    return home
+
+
+@pytest.fixture(autouse=True)
+def nothing_left_open() -> Iterator[None]:
+    threads_before = set(threading.enumerate())
+    queues_before = _open_virtual_queues()
+    yield
+    deadline = time.monotonic() + _GRACE_S
+    while True:
+        leaked = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
+        queues = _open_virtual_queues() - queues_before
+        if (not leaked and queues <= 0) or time.monotonic() > deadline:
+            break
+        time.sleep(0.02)
+    assert not leaked, f"threads left running: {[t.name for t in leaked]}"
+    assert queues <= 0, f"{queues} virtual CAN bus handle(s) left open"
