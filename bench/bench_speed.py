@@ -22,17 +22,28 @@ TARGET_X_REALTIME = 3.0
 
 
 def measure(cycles: int = 5000) -> list[BenchRecord]:
-    config = SimBenchConfig(serial="SN4242", load=LoadKind.DISK, effects=frozenset(),
-                            channel=f"bench-{uuid.uuid4().hex}")
-    with SimBench(config) as bench, open_network(BusConfig.virtual(config.channel)) as network:
+    config = SimBenchConfig(
+        serial="SN4242",
+        load=LoadKind.DISK,
+        effects=frozenset(),
+        channel=f"bench-{uuid.uuid4().hex}",
+    )
+    bus = BusConfig(interface="virtual", channel=config.channel)
+    with SimBench(config) as bench, open_network(bus) as network:
         bench.start()
-        with CanopenDrive(network, config.drive_node) as drive, \
-                CanopenSensor(network, config.sensor_node) as sensor:
-            clock = SteppedSync(network, period_s=config.sync_period_s, expected_cob_ids={
-                0x180 + config.sensor_node: sensor.name,
-                0x180 + config.drive_node: drive.name,
-                0x280 + config.drive_node: drive.name,
-            })
+        with (
+            CanopenDrive(network, config.drive_node) as drive,
+            CanopenSensor(network, config.sensor_node) as sensor,
+        ):
+            clock = SteppedSync(
+                network,
+                period_s=config.sync_period_s,
+                expected_cob_ids={
+                    0x180 + config.sensor_node: sensor.name,
+                    0x180 + config.drive_node: drive.name,
+                    0x280 + config.drive_node: drive.name,
+                },
+            )
             try:
                 drive.set_amplitude(1000)
                 drive.enable()
@@ -45,8 +56,18 @@ def measure(cycles: int = 5000) -> list[BenchRecord]:
                 clock.close()
     per_second = cycles / elapsed
     return [
-        BenchRecord("bench_sync_cycles_per_s", per_second, "cycles/s",
-                    TARGET_X_REALTIME / config.sync_period_s, Goal.AT_LEAST),
-        BenchRecord("bench_speed_vs_realtime", per_second * config.sync_period_s, "x realtime",
-                    TARGET_X_REALTIME, Goal.AT_LEAST),
+        BenchRecord(
+            "bench_sync_cycles_per_s",
+            per_second,
+            "cycles/s",
+            TARGET_X_REALTIME / config.sync_period_s,
+            Goal.AT_LEAST,
+        ),
+        BenchRecord(
+            "bench_speed_vs_realtime",
+            per_second * config.sync_period_s,
+            "x realtime",
+            TARGET_X_REALTIME,
+            Goal.AT_LEAST,
+        ),
     ]

@@ -7,6 +7,7 @@ benchmark harness.
 
 from __future__ import annotations
 
+import os
 import resource
 import subprocess
 import sys
@@ -14,24 +15,26 @@ import tempfile
 from pathlib import Path
 
 from bench.record import BenchRecord, Goal
+from station.core import LoadKind
+from station.schedules import ScheduleName, SweepPlan, calibration_schedule
+from station.serials import parse_serial
+from station.sim.record import SimRecordRequest, record_schedule
 
 TARGET_MB = 400.0
 RUN_S = 60.0
 
 
 def _child(out: str) -> None:
-    from station.core import LoadKind
-    from station.schedules import SweepPlan, calibration_schedule
-    from station.serials import parse_serial
-    from station.sim.record import SimRecordRequest, record_schedule
-    from station.schedules import ScheduleName
-
     # The calibration sweep stretched to a minute of motion.
     plan = SweepPlan(dwell_s=(RUN_S - 0.6) / 34)
     schedule = calibration_schedule(plan)
     request = SimRecordRequest(
-        out=Path(out), serial=parse_serial("SN60"), schedule=ScheduleName.CALIBRATION,
-        effects=frozenset(), load=LoadKind.DISK, loss=0.01,
+        out=Path(out),
+        serial=parse_serial("SN60"),
+        schedule=ScheduleName.CALIBRATION,
+        effects=frozenset(),
+        load=LoadKind.DISK,
+        loss=0.01,
         truth=Path(out).parent / "truth" / "run.truth.json",
     )
     (Path(out).parent / "truth").mkdir()
@@ -45,18 +48,28 @@ def measure() -> list[BenchRecord]:
         with tempfile.TemporaryDirectory() as tmp:
             out = str(Path(tmp) / "rec" / f"run{suffix}")
             Path(out).parent.mkdir()
-            done = subprocess.run([sys.executable, "-m", "bench.recording_memory", out],
-                                  check=True, env=_env(tmp), capture_output=True, text=True)
+            done = subprocess.run(
+                [sys.executable, "-m", "bench.recording_memory", out],
+                check=True,
+                env=_env(tmp),
+                capture_output=True,
+                text=True,
+            )
             # The child reports its own peak: RUSAGE_CHILDREN would be the max over all children.
             peak = float(done.stdout.split()[-1]) / 1024.0
-            records.append(BenchRecord(f"record_60s_peak_memory{suffix.replace('.', '_')}",
-                                       peak, "MB", TARGET_MB, Goal.AT_MOST))
+            records.append(
+                BenchRecord(
+                    f"record_60s_peak_memory{suffix.replace('.', '_')}",
+                    peak,
+                    "MB",
+                    TARGET_MB,
+                    Goal.AT_MOST,
+                )
+            )
     return records
 
 
 def _env(tmp: str) -> dict[str, str]:
-    import os
-
     env = dict(os.environ)
     env["STATION_HOME"] = str(Path(tmp) / "home")
     return env

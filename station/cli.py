@@ -16,7 +16,6 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any
 
-import click
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
@@ -28,11 +27,12 @@ from station.core import Effect, LoadKind
 from station.errors import ExitCode, InputError, StationError
 from station.schedules import Hold, ScheduleName
 from station.serials import parse_serial
+from station.sim.record import SimRecordRequest, describe_unit, record_simulation
 
 log = logging.getLogger("station")
 
 stdout = Console(soft_wrap=True)
-stderr = Console(stderr=True)
+stderr = Console(stderr=True, soft_wrap=True)
 
 app = typer.Typer(
     name="station",
@@ -53,7 +53,9 @@ NO_EFFECTS = "none"
 
 @app.callback()
 def _configure(
-    verbose: Annotated[int, typer.Option("--verbose", "-v", count=True, help="More log detail on stderr.")] = 0,
+    verbose: Annotated[
+        int, typer.Option("--verbose", "-v", count=True, help="More log detail on stderr.")
+    ] = 0,
 ) -> None:
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(
@@ -77,8 +79,12 @@ def _emit(doc: Any, as_json: bool, human: Any = None) -> None:
 @contextmanager
 def _progress(description: str, enabled: bool = True) -> Iterator[Any]:
     """Rich progress on stderr, so stdout stays clean for data."""
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.fields[phase]}"),
-               TimeElapsedColumn())
+    columns = (
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.fields[phase]}"),
+        TimeElapsedColumn(),
+    )
     with Progress(*columns, console=stderr, transient=True, disable=not enabled) as progress:
         task = progress.add_task(description, total=None, phase="")
 
@@ -108,23 +114,44 @@ def _parse_effects(values: list[str]) -> frozenset[Effect] | None:
 
 @sim_app.command("record")
 def sim_record(
-    out: Annotated[Path, typer.Argument(help="Recording to write (.asc, .blf, .log, .csv or .mf4).")],
-    serial: Annotated[str, typer.Option("--serial", help="Serial label of the simulated unit, e.g. SN123.")],
-    schedule: Annotated[ScheduleName, typer.Option("--schedule", help="What the drive is made to do.")],
-    effect: Annotated[list[str] | None, typer.Option(
-        "--effect", help="Physics to switch on (repeatable; 'none' for none). Default: the unit's own.")] = None,
-    seed: Annotated[int, typer.Option("--seed", help="Seed of the sensor noise and frame losses.")] = 0,
-    load: Annotated[LoadKind, typer.Option("--load", help="Mechanical load on the motor.")] = LoadKind.DISK,
-    loss: Annotated[float, typer.Option("--loss", help="Fraction of frames the logger drops.", min=0.0, max=0.5)] = 0.0,
-    noise_ug: Annotated[float | None, typer.Option(
-        "--noise-ug", help="Sensor noise density in µg/√Hz (default: the unit's).", min=0.0)] = None,
-    truth: Annotated[Path | None, typer.Option(
-        "--truth", help="Where to write the truth file (never beside the recording).")] = None,
+    out: Annotated[
+        Path, typer.Argument(help="Recording to write (.asc, .blf, .log, .csv or .mf4).")
+    ],
+    serial: Annotated[
+        str, typer.Option("--serial", help="Serial label of the simulated unit, e.g. SN123.")
+    ],
+    schedule: Annotated[
+        ScheduleName, typer.Option("--schedule", help="What the drive is made to do.")
+    ],
+    effect: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--effect",
+            help="Physics to switch on (repeatable; 'none' for none). Default: the unit's own.",
+        ),
+    ] = None,
+    seed: Annotated[
+        int, typer.Option("--seed", help="Seed of the sensor noise and frame losses.")
+    ] = 0,
+    load: Annotated[
+        LoadKind, typer.Option("--load", help="Mechanical load on the motor.")
+    ] = LoadKind.DISK,
+    loss: Annotated[
+        float, typer.Option("--loss", help="Fraction of frames the logger drops.", min=0.0, max=0.5)
+    ] = 0.0,
+    noise_ug: Annotated[
+        float | None,
+        typer.Option(
+            "--noise-ug", help="Sensor noise density in µg/√Hz (default: the unit's).", min=0.0
+        ),
+    ] = None,
+    truth: Annotated[
+        Path | None,
+        typer.Option("--truth", help="Where to write the truth file (never beside the recording)."),
+    ] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Record a run of the simulated bench, with its truth in a separate file."""
-    from station.sim.record import SimRecordRequest, record_simulation
-
     request = SimRecordRequest(
         out=out,
         serial=parse_serial(serial),
@@ -146,16 +173,24 @@ def sim_record(
 @sim_app.command("unit")
 def sim_unit(
     serial: Annotated[str, typer.Argument(help="Serial label of the simulated unit, e.g. SN123.")],
-    effect: Annotated[list[str] | None, typer.Option(
-        "--effect", help="Override the unit's concealed effects (repeatable; 'none' for none).")] = None,
-    load: Annotated[LoadKind, typer.Option("--load", help="Mechanical load on the motor.")] = LoadKind.DISK,
-    amplitude_mA: Annotated[float, typer.Option("--amplitude-mA", help="Operating current I.", min=1.0)] = 1000.0,
-    electrical_hz: Annotated[float, typer.Option("--electrical-hz", help="Operating electrical frequency.")] = 20.0,
+    effect: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--effect", help="Override the unit's concealed effects (repeatable; 'none' for none)."
+        ),
+    ] = None,
+    load: Annotated[
+        LoadKind, typer.Option("--load", help="Mechanical load on the motor.")
+    ] = LoadKind.DISK,
+    amplitude_mA: Annotated[
+        float, typer.Option("--amplitude-mA", help="Operating current I.", min=1.0)
+    ] = 1000.0,
+    electrical_hz: Annotated[
+        float, typer.Option("--electrical-hz", help="Operating electrical frequency.")
+    ] = 20.0,
     as_json: JsonOption = False,
 ) -> None:
     """Reveal a simulated unit: its concealed imperfections and its optimal trims."""
-    from station.sim.record import describe_unit
-
     doc = describe_unit(
         parse_serial(serial),
         load=load,
@@ -186,13 +221,14 @@ def main() -> None:
     """Entry point: map every failure to CLI.md's exit codes."""
     try:
         result = app(standalone_mode=False)
-    except click.exceptions.UsageError as exc:
-        exc.show(file=sys.stderr)
+    except typer.Abort:
+        stderr.print("[bold red]aborted[/]")
+        sys.exit(ExitCode.STATION)
+    except typer.TyperException as exc:
+        # Usage errors (bad option, bad value, missing argument), shown as click shows them.
+        exc.show(file=sys.stderr)  # type: ignore[attr-defined]
         sys.exit(ExitCode.USAGE)
-    except click.exceptions.ClickException as exc:
-        exc.show(file=sys.stderr)
-        sys.exit(ExitCode.USAGE)
-    except (click.exceptions.Abort, KeyboardInterrupt):
+    except KeyboardInterrupt:
         stderr.print("[bold red]aborted[/]")
         sys.exit(ExitCode.STATION)
     except StationError as exc:

@@ -53,9 +53,7 @@ class SdoAbort(DeviceError):
     """The device refused an SDO transfer; ``code`` is the CiA 301 abort code."""
 
     def __init__(self, device: str, index: int, subindex: int, code: int) -> None:
-        super().__init__(
-            device, f"SDO 0x{index:04X}:{subindex:02X} aborted with 0x{code:08X}"
-        )
+        super().__init__(device, f"SDO 0x{index:04X}:{subindex:02X} aborted with 0x{code:08X}")
         self.index = index
         self.subindex = subindex
         self.code = code

@@ -84,7 +84,8 @@ class Axis(StrEnum):
     Z = "z"
 
     @property
-    def index(self) -> int:
+    def column(self) -> int:
+        """Position of the axis in the sensor's X, Y, Z sample."""
         return "xyz".index(self.value)
 
 
@@ -125,7 +126,9 @@ class RecordingMetadata:
         return doc
 
     @classmethod
-    def from_json_dict(cls, doc: Mapping[str, Any], *, source: str = "metadata") -> RecordingMetadata:
+    def from_json_dict(
+        cls, doc: Mapping[str, Any], *, source: str = "metadata"
+    ) -> RecordingMetadata:
         """Strict reading: every ICD key present, of the right type and in range."""
         for key, kinds in _REQUIRED_KEYS.items():
             if key not in doc:
@@ -137,8 +140,15 @@ class RecordingMetadata:
             raise RecordingError(
                 f"{source}: key 'format' is {doc['format']!r}, expected {RECORDING_FORMAT!r}"
             )
-        positive = ("sync_period_s", "microsteps_per_fullstep", "rotor_teeth",
-                    "rated_current_mA", "sensor_lsb_mps2", "sensor_radius_m", "gear_ratio")
+        positive = (
+            "sync_period_s",
+            "microsteps_per_fullstep",
+            "rotor_teeth",
+            "rated_current_mA",
+            "sensor_lsb_mps2",
+            "sensor_radius_m",
+            "gear_ratio",
+        )
         for key in positive:
             if not math.isfinite(float(doc[key])) or float(doc[key]) <= 0:
                 raise RecordingError(f"{source}: key {key!r} must be positive, got {doc[key]!r}")
@@ -180,7 +190,9 @@ def read_metadata(log_path: Path) -> RecordingMetadata:
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise RecordingError(f"{path}: metadata is not valid JSON ({exc.msg}, line {exc.lineno})") from None
+        raise RecordingError(
+            f"{path}: metadata is not valid JSON ({exc.msg}, line {exc.lineno})"
+        ) from None
     if not isinstance(doc, dict):
         raise RecordingError(f"{path}: metadata must be a JSON object")
     return RecordingMetadata.from_json_dict(doc, source=str(path))
@@ -196,7 +208,7 @@ def write_json_atomically(path: Path, doc: Mapping[str, Any]) -> None:
         tmp.unlink(missing_ok=True)
 
 
-class _BatchedMF4Writer(MF4Writer):  # type: ignore[misc]
+class _BatchedMF4Writer(MF4Writer):
     """python-can's MF4 writer extends the file once per frame (~0.5 ms each);
     batching the data frames into the same channel group keeps the file
     identical in layout and makes a one-minute run take seconds, not minutes."""
@@ -215,14 +227,16 @@ class _BatchedMF4Writer(MF4Writer):  # type: ignore[misc]
         timestamp = self.last_timestamp if msg.timestamp is None else msg.timestamp
         self.last_timestamp = max(self.last_timestamp, timestamp)
         channel = channel2int(msg.channel)
-        self._pending.append((
-            timestamp - self._start_time,
-            msg.arbitration_id,
-            int(msg.is_extended_id),
-            0 if msg.is_rx else 1,
-            channel if channel is not None else 0,
-            bytes(msg.data),
-        ))
+        self._pending.append(
+            (
+                timestamp - self._start_time,
+                msg.arbitration_id,
+                int(msg.is_extended_id),
+                0 if msg.is_rx else 1,
+                channel if channel is not None else 0,
+                bytes(msg.data),
+            )
+        )
         if len(self._pending) >= self._BATCH:
             self._flush()
 
@@ -282,7 +296,7 @@ class SimulatedClock:
         return self._start + max(self._syncs, 0) * self._period + offset
 
 
-class RecordingWriter(can.Listener):  # type: ignore[misc]
+class RecordingWriter(can.Listener):
     """Records every frame it is given into an ICD.md §5 recording.
 
     ``loss_probability`` models a logger that drops frames (USB adapters under

@@ -55,7 +55,9 @@ def run_schedule(
     total = schedule.cycles
     done = 0
     applied = _Applied()
-    log.info("running schedule %s: %d holds, %d SYNC cycles", schedule.name, len(schedule.holds), total)
+    log.info(
+        "running schedule %s: %d holds, %d SYNC cycles", schedule.name, len(schedule.holds), total
+    )
     try:
         if schedule.holds:
             # Amplitude and trims go in before the phases are energised, so the

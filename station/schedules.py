@@ -113,9 +113,13 @@ def calibration_schedule(
         Hold(Phase.BASELINE, v, amp, NOMINAL_TRIMS, dwell),
     ]
     for offset in _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points):
-        holds.append(Hold(Phase.SWEEP_OFFSET_A, v, amp, replace(NOMINAL_TRIMS, offset_a_mA=offset), dwell))
+        holds.append(
+            Hold(Phase.SWEEP_OFFSET_A, v, amp, replace(NOMINAL_TRIMS, offset_a_mA=offset), dwell)
+        )
     for offset in _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points):
-        holds.append(Hold(Phase.SWEEP_OFFSET_B, v, amp, replace(NOMINAL_TRIMS, offset_b_mA=offset), dwell))
+        holds.append(
+            Hold(Phase.SWEEP_OFFSET_B, v, amp, replace(NOMINAL_TRIMS, offset_b_mA=offset), dwell)
+        )
     for gain_a in _linspace_int(plan.gain_low, plan.gain_high, plan.gain_points):
         trims = replace(NOMINAL_TRIMS, gain_a=gain_a, gain_b=2 * GAIN_UNITY - gain_a)
         holds.append(Hold(Phase.SWEEP_GAIN, v, amp, trims, dwell))
@@ -157,11 +161,14 @@ def characterization_schedule(
                 steps = (
                     (Phase.STEP_OFFSET_A, replace(NOMINAL_TRIMS, offset_a_mA=plan.offset_step_mA)),
                     (Phase.STEP_OFFSET_B, replace(NOMINAL_TRIMS, offset_b_mA=plan.offset_step_mA)),
-                    (Phase.STEP_GAIN, replace(
-                        NOMINAL_TRIMS,
-                        gain_a=GAIN_UNITY + plan.gain_step,
-                        gain_b=GAIN_UNITY - plan.gain_step,
-                    )),
+                    (
+                        Phase.STEP_GAIN,
+                        replace(
+                            NOMINAL_TRIMS,
+                            gain_a=GAIN_UNITY + plan.gain_step,
+                            gain_b=GAIN_UNITY - plan.gain_step,
+                        ),
+                    ),
                 )
                 holds.append(Hold(Phase.CONDITION, v, amp, NOMINAL_TRIMS, settle))
                 holds.extend(Hold(phase, v, amp, trims, step) for phase, trims in steps)
@@ -169,7 +176,9 @@ def characterization_schedule(
     return Schedule(ScheduleName.CHARACTERIZATION.value, tuple(holds))
 
 
-def named_schedule(name: ScheduleName, *, microsteps: int = 256, sync_period_s: float = 0.001) -> Schedule:
+def named_schedule(
+    name: ScheduleName, *, microsteps: int = 256, sync_period_s: float = 0.001
+) -> Schedule:
     if name is ScheduleName.CALIBRATION:
         return calibration_schedule(SweepPlan(), microsteps=microsteps, sync_period_s=sync_period_s)
     return characterization_schedule(

@@ -30,7 +30,8 @@ def parse_serial(label: str) -> Serial:
     match = _LABEL.fullmatch(label)
     if match is None:
         raise InputError(
-            f"serial {label!r} is malformed: expected 'SN' followed by a decimal number without leading zeros, e.g. SN123"
+            f"serial {label!r} is malformed: expected 'SN' followed by a decimal number"
+            " without leading zeros, e.g. SN123"
         )
     number = int(match.group(1))
     if number > _U32_MAX:

@@ -23,10 +23,18 @@ from station.recording import (
 
 def _metadata() -> RecordingMetadata:
     return RecordingMetadata(
-        serial="SN123", drive_node=1, sensor_node=16, sync_period_s=0.001,
-        microsteps_per_fullstep=256, rotor_teeth=50, rated_current_mA=1000,
-        sensor_lsb_mps2=2 * 9.80665 / 32768, tangential_axis=Axis.X,
-        sensor_radius_m=0.1, gear_ratio=0.142857, extra={"schedule": "calibration"},
+        serial="SN123",
+        drive_node=1,
+        sensor_node=16,
+        sync_period_s=0.001,
+        microsteps_per_fullstep=256,
+        rotor_teeth=50,
+        rated_current_mA=1000,
+        sensor_lsb_mps2=2 * 9.80665 / 32768,
+        tangential_axis=Axis.X,
+        sensor_radius_m=0.1,
+        gear_ratio=0.142857,
+        extra={"schedule": "calibration"},
     )
 
 
@@ -34,12 +42,27 @@ def _frames(cycles: int) -> list[can.Message]:
     frames = []
     for n in range(cycles):
         frames.append(can.Message(arbitration_id=0x080, data=[n % 240 + 1], is_extended_id=False))
-        frames.append(can.Message(arbitration_id=0x190, data=struct.pack("<Hhhh", n, 1, -2, 1638),
-                                  is_extended_id=False))
-        frames.append(can.Message(arbitration_id=0x181, data=struct.pack("<iHH", 80 * n, 1000, 0x0237),
-                                  is_extended_id=False))
-        frames.append(can.Message(arbitration_id=0x281, data=struct.pack("<hhHH", -5, 7, 9900, 10100),
-                                  is_extended_id=False))
+        frames.append(
+            can.Message(
+                arbitration_id=0x190,
+                data=struct.pack("<Hhhh", n, 1, -2, 1638),
+                is_extended_id=False,
+            )
+        )
+        frames.append(
+            can.Message(
+                arbitration_id=0x181,
+                data=struct.pack("<iHH", 80 * n, 1000, 0x0237),
+                is_extended_id=False,
+            )
+        )
+        frames.append(
+            can.Message(
+                arbitration_id=0x281,
+                data=struct.pack("<hhHH", -5, 7, 9900, 10100),
+                is_extended_id=False,
+            )
+        )
     return frames
 
 
@@ -120,7 +143,7 @@ def test_malformed_metadata_names_the_key(tmp_path: Path, mutate: object, messag
 
 
 def test_missing_or_broken_metadata_is_a_recording_error(tmp_path: Path) -> None:
-    with pytest.raises(RecordingError, match="metadata file run.json is missing"):
+    with pytest.raises(RecordingError, match=r"metadata file run\.json is missing"):
         read_metadata(tmp_path / "run.asc")
     (tmp_path / "run.json").write_text("{not json")
     with pytest.raises(RecordingError, match="not valid JSON"):

@@ -32,10 +32,12 @@ def test_calibration_sweeps_follow_the_paper() -> None:
     schedule = calibration_schedule(SweepPlan())
     a = [h.trims.offset_a_mA for h in schedule.holds if h.phase is Phase.SWEEP_OFFSET_A]
     b = [h.trims.offset_b_mA for h in schedule.holds if h.phase is Phase.SWEEP_OFFSET_B]
-    gains = [(h.trims.gain_a, h.trims.gain_b) for h in schedule.holds if h.phase is Phase.SWEEP_GAIN]
+    gains = [
+        (h.trims.gain_a, h.trims.gain_b) for h in schedule.holds if h.phase is Phase.SWEEP_GAIN
+    ]
     assert a[0] == -500 and a[-1] == 500 and len(a) == 11
     assert b == a
-    assert gains[0] == (7000, 13000) and gains[-1] == (13000, 7000)
+    assert gains[0] == (7000.0, 13000.0) and gains[-1] == (13000.0, 7000.0)
     assert all(ga + gb == 2 * GAIN_UNITY for ga, gb in gains)
     assert schedule.holds[0].velocity == 0 and schedule.holds[-1].velocity == 0
     assert 30_000 < schedule.cycles < 40_000

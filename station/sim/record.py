@@ -23,7 +23,7 @@ from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import CanopenSensor
 from station import __version__
 from station.core import Effect, LoadKind, Trims
-from station.errors import IdentityMismatch, InputError
+from station.errors import DeviceError, IdentityMismatch, InputError
 from station.paths import sim_state_dir, truth_dir
 from station.physics.optimum import optimal_trims
 from station.physics.params import UnitParams, derive_unit
@@ -116,8 +116,16 @@ class SimRecordResult:
         }
 
 
-def _metadata(unit: UnitParams, request: SimRecordRequest, *, microsteps: int, rated_mA: int,
-              lsb: float, config: SimBenchConfig, schedule: str) -> RecordingMetadata:
+def _metadata(
+    unit: UnitParams,
+    request: SimRecordRequest,
+    *,
+    microsteps: int,
+    rated_mA: int,
+    lsb: float,
+    config: SimBenchConfig,
+    schedule: str,
+) -> RecordingMetadata:
     return RecordingMetadata(
         serial=request.serial.label,
         drive_node=config.drive_node,
@@ -169,11 +177,16 @@ def record_schedule(
         sync_period_s=SYNC_PERIOD_S,
         noise_density_ug=request.noise_density_ug,
     )
-    bus = BusConfig.virtual(config.channel)
+    # The recorder listens on the station's own notifier, so it must see our SYNCs too.
+    bus = BusConfig(
+        interface="virtual", channel=config.channel, options={"receive_own_messages": True}
+    )
     with SimBench(config) as bench, open_network(bus) as network:
         bench.start()
-        with CanopenDrive(network, config.drive_node) as drive, \
-                CanopenSensor(network, config.sensor_node) as sensor:
+        with (
+            CanopenDrive(network, config.drive_node) as drive,
+            CanopenSensor(network, config.sensor_node) as sensor,
+        ):
             identity = drive.identity()
             if identity.serial_number != request.serial.number:
                 raise IdentityMismatch(
@@ -182,8 +195,13 @@ def record_schedule(
                 )
             microsteps = drive.microsteps_per_fullstep()
             metadata = _metadata(
-                unit, request, microsteps=microsteps, rated_mA=drive.rated_current_mA(),
-                lsb=sensor.lsb_mps2(), config=config, schedule=schedule.name,
+                unit,
+                request,
+                microsteps=microsteps,
+                rated_mA=drive.rated_current_mA(),
+                lsb=sensor.lsb_mps2(),
+                config=config,
+                schedule=schedule.name,
             )
             clock = SteppedSync(
                 network,
@@ -201,11 +219,14 @@ def record_schedule(
                 loss_probability=request.loss,
                 seed=request.seed,
             ) as recorder:
-                network.notifier.add_listener(recorder)
+                notifier = network.notifier
+                if notifier is None:
+                    raise DeviceError(bus.describe(), "the CAN network is not connected")
+                notifier.add_listener(recorder)
                 try:
                     run_schedule(schedule, drive, clock, on_progress=on_progress)
                 finally:
-                    network.notifier.remove_listener(recorder)
+                    notifier.remove_listener(recorder)
                     clock.close()
                 recorder.commit()
     truth = _truth(unit, request, schedule.name, schedule.cycles)
@@ -233,7 +254,9 @@ def _operating_optimum(unit: UnitParams) -> Trims:
     )
 
 
-def _truth(unit: UnitParams, request: SimRecordRequest, schedule: str, cycles: int) -> dict[str, Any]:
+def _truth(
+    unit: UnitParams, request: SimRecordRequest, schedule: str, cycles: int
+) -> dict[str, Any]:
     return {
         "format": TRUTH_FORMAT,
         "recording": str(request.out.resolve()),
@@ -263,8 +286,9 @@ def describe_unit(
 ) -> dict[str, Any]:
     """What ``station sim unit`` reveals: concealed imperfections and optimal trims."""
     unit = derive_unit(serial.label, load=load, effects=effects)
-    optimum = optimal_trims(unit, amplitude_mA=amplitude_mA, electrical_hz=electrical_hz,
-                            sync_period_s=SYNC_PERIOD_S)
+    optimum = optimal_trims(
+        unit, amplitude_mA=amplitude_mA, electrical_hz=electrical_hz, sync_period_s=SYNC_PERIOD_S
+    )
     truth = unit.to_dict()
     stored = Eeprom.peek(sim_state_dir(), serial.label)
     return {

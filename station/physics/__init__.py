@@ -1,0 +1,86 @@
+"""The simulated unit's physics: torque model, unit parameters, plant, optimal trims.
+
+Pure numpy/scipy and ``math``; no I/O. The simulated devices drive a ``Plant``
+one SYNC period at a time; the truth a calibration is judged against comes
+from ``optimal_trims`` on the same plant.
+"""
+
+from station.physics.motor import (
+    DetentHarmonic,
+    FluxHarmonic,
+    MotorParams,
+    inductance_matrix,
+    inductance_matrix_derivative,
+    magnetic_stiffness,
+    mutual_inductances,
+    ripple_harmonic_magnitudes,
+    torque,
+    torque_closed_form,
+    torque_components,
+    torque_numerical,
+)
+from station.physics.optimum import optimal_trims, settle_time_s, steady_harmonics
+from station.physics.params import (
+    STANDARD_GRAVITY,
+    AmplifierParams,
+    Axis,
+    BeltParams,
+    CouplingParams,
+    CurrentHarmonic,
+    DiskParams,
+    FrictionParams,
+    MechanicsParams,
+    SensorParams,
+    UnitParams,
+    derive_unit,
+)
+from station.physics.plant import (
+    FULL_SCALE_COUNTS,
+    Chain,
+    DriveCommand,
+    LumpedFriction,
+    Mode,
+    Plant,
+    build_chain,
+    commanded_currents_A,
+    modal_analysis,
+)
+
+__all__ = [
+    "FULL_SCALE_COUNTS",
+    "STANDARD_GRAVITY",
+    "AmplifierParams",
+    "Axis",
+    "BeltParams",
+    "Chain",
+    "CouplingParams",
+    "CurrentHarmonic",
+    "DetentHarmonic",
+    "DiskParams",
+    "DriveCommand",
+    "FluxHarmonic",
+    "FrictionParams",
+    "LumpedFriction",
+    "MechanicsParams",
+    "Mode",
+    "MotorParams",
+    "Plant",
+    "SensorParams",
+    "UnitParams",
+    "build_chain",
+    "commanded_currents_A",
+    "derive_unit",
+    "inductance_matrix",
+    "inductance_matrix_derivative",
+    "magnetic_stiffness",
+    "modal_analysis",
+    "mutual_inductances",
+    "optimal_trims",
+    "ripple_harmonic_magnitudes",
+    "settle_time_s",
+    "steady_harmonics",
+    "torque",
+    "torque_closed_form",
+    "torque_components",
+    "torque_numerical",
+]

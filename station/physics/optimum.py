@@ -1,0 +1,183 @@
+"""The trims a perfect calibration would find, computed from the plant itself.
+
+The truth a calibration is judged against must include everything the unit
+does, effects and nonlinearity alike, so it comes from noise-free steady-state
+runs of the same plant the simulated bench uses, not from eq. (16). What the
+paper's procedure nulls is the 1st harmonic of the load's tangential
+acceleration (through the offsets) and the 2nd (through the gain split at a
+constant gain sum). Near the optimum both are close to affine in the trims, so
+a Newton iteration on finite differences converges in a few runs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.core import GAIN_UNITY, Trims
+from station.dsp.demod import harmonic_phasors
+from station.physics.params import Axis, UnitParams
+from station.physics.plant import DriveCommand, Plant, modal_analysis
+
+OFFSET_STEP_mA = 20.0
+"""Finite-difference step for the offsets: large against rounding, small against curvature."""
+
+SPLIT_STEP = 200.0
+"""Finite-difference step for the gain split (1/10000)."""
+
+TOLERANCE_mA = 0.01
+TOLERANCE_GAIN = 0.1
+MAX_ITERATIONS = 12
+
+_SETTLE_DECAY = math.log(1e3)
+"""Transients are let decay by this many e-foldings of the slowest mode before measuring."""
+_MIN_SETTLE_S = 0.2
+_MAX_EXTRA_PERIODS = 50
+_MAX_SETTLE_S = 5.0
+
+
+def _quiet(unit: UnitParams) -> UnitParams:
+    """The same unit with a perfect sensor (no noise): truth, not a measurement."""
+    return replace(unit, sensor=replace(unit.sensor, noise_density_ug=0.0))
+
+
+def settle_time_s(unit: UnitParams, amplitude_mA: float) -> float:
+    """How long the slowest mode needs to forget a start on the steady trajectory."""
+    rates = [m.decay_rate_per_s for m in modal_analysis(unit, amplitude_mA)]
+    slowest = min((r for r in rates if r > 0), default=1.0 / _MAX_SETTLE_S)
+    return min(_MAX_SETTLE_S, max(_MIN_SETTLE_S, _SETTLE_DECAY / slowest))
+
+
+def steady_harmonics(
+    unit: UnitParams,
+    trims: Trims,
+    *,
+    amplitude_mA: float = 1000.0,
+    electrical_hz: float = 20.0,
+    sync_period_s: float = 0.001,
+    orders: Sequence[int] = (1, 2),
+    periods: int = 4,
+    substeps: int = 8,
+) -> NDArray[np.complex128]:
+    """Steady-state harmonics of the sensor's tangential reading (m/s², noise-free).
+
+    Phasors per ``harmonic_phasors``, referenced to the drive's electrical
+    angle x_u at each SYNC, over ``periods`` whole electrical periods after
+    the transients have died out. This is what a perfect station would
+    demodulate at constant speed with these trims.
+    """
+    if electrical_hz <= 0 or periods < 1:
+        raise ValueError("need a positive electrical frequency and at least one period")
+    plant = Plant(_quiet(unit), sync_period_s=sync_period_s, substeps=substeps)
+    m = unit.microsteps
+    velocity = electrical_hz * 4.0 * m
+    samples_per_period = 1.0 / (electrical_hz * sync_period_s)
+    measured = _whole_period_samples(samples_per_period, periods)
+    settle = math.ceil(settle_time_s(unit, amplitude_mA) / sync_period_s)
+    plant.place_on_trajectory(
+        DriveCommand(True, amplitude_mA, trims, 0.0, velocity, 0.0, m)
+    )
+    axis = list(Axis).index(unit.sensor.tangential_axis)
+    acc = np.empty(measured)
+    for n in range(settle + measured):
+        plant.advance(DriveCommand(True, amplitude_mA, trims, velocity * n * sync_period_s,
+                                   velocity, 0.0, m))
+        if n >= settle:
+            acc[n - settle] = plant.sensor_reading_mps2[axis]
+    ends = np.arange(settle + 1, settle + measured + 1) * sync_period_s * velocity
+    angle = 2.0 * math.pi * ends / (4.0 * m)
+    return harmonic_phasors(acc, angle, orders)
+
+
+def _whole_period_samples(samples_per_period: float, periods: int) -> int:
+    """The fewest samples, for at least ``periods`` periods, that span whole periods.
+
+    Demodulation rejects the other orders only over whole periods: at 1 kHz,
+    30 Hz fits whole samples every 3 periods, so 4 asked become 6 (200
+    samples), not 133.3. Frequencies with no short common period with the SYNC
+    rate fall back to the nearest count.
+    """
+    for count in range(periods, periods + _MAX_EXTRA_PERIODS):
+        samples = count * samples_per_period
+        if abs(samples - round(samples)) < 1e-6:
+            return round(samples)
+    return max(1, round(periods * samples_per_period))
+
+
+def _trims(u: NDArray[np.float64]) -> Trims:
+    return Trims(float(u[0]), float(u[1]), GAIN_UNITY + float(u[2]), GAIN_UNITY - float(u[2]))
+
+
+def _step(h1: complex, h2: complex, jac1: NDArray[np.complex128],
+          jac2: NDArray[np.complex128]) -> NDArray[np.float64]:
+    """Δ with H1 + J1·Δ = 0 that minimises |H2 + J2·Δ|² along what that leaves free.
+
+    Two real equations in three unknowns leave a line Δp + t·n; on it H2 is
+    complex-affine in t, so t* = −Re(conj(J2·n)·(H2 + J2·Δp)) / |J2·n|² (the
+    paper's 3rd step, generalised to H1 depending on the split and H2 on the
+    offsets).
+    """
+    a = np.vstack([jac1.real, jac1.imag])
+    b = -np.array([h1.real, h1.imag])
+    particular = np.linalg.lstsq(a, b, rcond=None)[0]
+    null = np.linalg.svd(a)[2][-1]
+    g = complex(jac2 @ null)
+    r = complex(h2 + jac2 @ particular)
+    t = -(g.conjugate() * r).real / (abs(g) ** 2) if abs(g) > 0 else 0.0
+    return np.asarray(particular + t * null, dtype=np.float64)
+
+
+def optimal_trims(
+    unit: UnitParams,
+    *,
+    amplitude_mA: float = 1000.0,
+    electrical_hz: float = 20.0,
+    sync_period_s: float = 0.001,
+) -> Trims:
+    """Trims that null H1 and minimise |H2| over the split gain_a + gain_b = 20000.
+
+    Newton on finite differences (steps of 20 mA and 200 gain units) from the
+    nominal trims, keeping the Jacobian while it converges (chord steps) and
+    refreshing it when it stops doing so.
+    """
+
+    def harmonics(u: NDArray[np.float64]) -> tuple[complex, complex]:
+        h = steady_harmonics(unit, _trims(u), amplitude_mA=amplitude_mA,
+                             electrical_hz=electrical_hz, sync_period_s=sync_period_s)
+        return complex(h[0]), complex(h[1])
+
+    def jacobian(u: NDArray[np.float64], base: tuple[complex, complex]) -> tuple[
+            NDArray[np.complex128], NDArray[np.complex128]]:
+        jac1 = np.empty(3, dtype=np.complex128)
+        jac2 = np.empty(3, dtype=np.complex128)
+        for i, step in enumerate((OFFSET_STEP_mA, OFFSET_STEP_mA, SPLIT_STEP)):
+            probe = u.copy()
+            probe[i] += step
+            p1, p2 = harmonics(probe)
+            jac1[i] = (p1 - base[0]) / step
+            jac2[i] = (p2 - base[1]) / step
+        return jac1, jac2
+
+    if amplitude_mA <= 0:
+        raise ValueError("the optimum is defined for a positive phase current amplitude")
+    u = np.zeros(3)
+    base = harmonics(u)
+    jac1, jac2 = jacobian(u, base)
+    previous = math.inf
+    for _ in range(MAX_ITERATIONS):
+        delta = _step(base[0], base[1], jac1, jac2)
+        u = u + delta
+        size = max(abs(delta[0]) / TOLERANCE_mA, abs(delta[1]) / TOLERANCE_mA,
+                   abs(delta[2]) / TOLERANCE_GAIN)
+        if size <= 1.0:
+            return _trims(u)
+        base = harmonics(u)
+        if size > 0.5 * previous:
+            jac1, jac2 = jacobian(u, base)
+        previous = size
+    # A truth that is not converged would silently mislead every comparison with it.
+    raise RuntimeError(f"optimal trims for {unit.serial} did not converge: last {_trims(u)}")

@@ -1,0 +1,630 @@
+"""A simulated unit: every constant of motor, drive, load and sensor, from its serial.
+
+The simulator must behave like a population of real units: each serial has its
+own amplifier offsets and gain errors (what calibration removes) and, for some
+units, concealed extra physics (``Effect``) that a diagnosis should find. All
+of it is drawn from a numpy Generator seeded with SHA-256 of the serial label,
+so a unit is the same in every process and on every machine (Python's
+``hash()`` is salted per process and would not be).
+
+Every group of constants draws from its own stream, and every effect's
+constants are drawn whether or not the effect is on: switching an effect on
+(``effects=[...]``) reveals the same magnitudes the unit would conceal, and
+adding a new group later does not reshuffle existing units.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, fields, is_dataclass
+from enum import Enum, StrEnum
+from typing import Any
+
+import numpy as np
+
+from station.core import Effect, LoadKind
+from station.physics.motor import DetentHarmonic, FluxHarmonic, MotorParams
+from station.serials import parse_serial
+
+__all__ = [
+    "AmplifierParams",
+    "Axis",
+    "BeltParams",
+    "CouplingParams",
+    "CurrentHarmonic",
+    "DetentHarmonic",
+    "DiskParams",
+    "FluxHarmonic",
+    "FrictionParams",
+    "MechanicsParams",
+    "MotorParams",
+    "SensorParams",
+    "UnitParams",
+    "derive_unit",
+]
+
+STANDARD_GRAVITY = 9.80665
+"""m/s² per g (the sensor's unit of range)."""
+
+SENSOR_RANGES_G = (2, 4, 8, 16)
+"""Full-scale ranges the sensor accepts (ICD.md §3, 0x2000)."""
+
+NOMINAL_ELECTRICAL_HZ = 20.0
+"""The paper's driving frequency; friction and smoothing are scaled to it."""
+
+EFFECT_PROBABILITY = 0.2
+"""Chance that a unit conceals any one effect (so most units have few or none)."""
+
+BELT_REDUCTION = 1.0 / 7.0
+"""The paper's pan unit: N_G = 1/7 (load revolutions per motor revolution)."""
+
+
+class Axis(StrEnum):
+    """Sensor axes as named in the recording metadata (ICD.md §5)."""
+
+    X = "x"
+    Y = "y"
+    Z = "z"
+
+
+@dataclass(frozen=True)
+class CurrentHarmonic:
+    """A harmonic of one phase's current waveform, relative to its fundamental.
+
+    Phase A adds ``relative·Î·cos(h·x_u + phase_rad)``; phase B the same with
+    x_u − π/2 (its own waveform angle), so equal entries mean equal phases.
+    """
+
+    order: int
+    relative: float
+    phase_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.order < 2:
+            raise ValueError(f"current harmonic order must be >= 2, got {self.order}")
+
+
+@dataclass(frozen=True)
+class AmplifierParams:
+    """The drive's own imperfections, on top of whatever trims are written.
+
+    The trims' offset adds to ``offset_*_mA`` (net offset = trim + amplifier
+    offset); the gain error scales the sine/cosine reference (fundamental and
+    distortion) but not the offset path. Bandwidths are those of a first-order
+    current loop per phase; ``None`` is an ideal loop.
+    """
+
+    offset_a_mA: float = 0.0
+    offset_b_mA: float = 0.0
+    gain_error_a: float = 0.0
+    gain_error_b: float = 0.0
+    distortion_a: tuple[CurrentHarmonic, ...] = ()
+    distortion_b: tuple[CurrentHarmonic, ...] = ()
+    bandwidth_a_hz: float | None = None
+    bandwidth_b_hz: float | None = None
+
+    def __post_init__(self) -> None:
+        for e in (self.gain_error_a, self.gain_error_b):
+            if not -0.5 < e < 0.5:
+                raise ValueError(f"amplifier gain error {e} is not a plausible fraction")
+        if (self.bandwidth_a_hz is None) != (self.bandwidth_b_hz is None):
+            raise ValueError("give both current-loop bandwidths or neither")
+        for bw in (self.bandwidth_a_hz, self.bandwidth_b_hz):
+            if bw is not None and bw <= 0:
+                raise ValueError("current-loop bandwidth must be positive")
+
+
+@dataclass(frozen=True)
+class FrictionParams:
+    """Coulomb (tanh-smoothed, direction dependent) plus viscous friction on one inertia.
+
+    Torque opposing motion: ``viscous·ω + C(ω)·tanh(ω/smoothing)`` with
+    C = coulomb_pos for ω ≥ 0, coulomb_neg otherwise (both magnitudes).
+    """
+
+    coulomb_pos_Nm: float
+    coulomb_neg_Nm: float
+    viscous_Nms: float
+    smoothing_rad_s: float
+
+    def __post_init__(self) -> None:
+        if min(self.coulomb_pos_Nm, self.coulomb_neg_Nm, self.viscous_Nms) < 0:
+            raise ValueError("friction coefficients are magnitudes (>= 0)")
+        if self.smoothing_rad_s <= 0:
+            raise ValueError("friction smoothing speed must be positive")
+
+
+@dataclass(frozen=True)
+class CouplingParams:
+    """A compliant coupling between the rotor and the next inertia (``load_resonance``).
+
+    ``resonance_hz`` fixes the coupling's stiffness: it is the frequency of
+    the inertia right after the coupling oscillating on it with the rotor
+    held, a property of the hardware that no current changes. (It is also the
+    anti-resonance of the rotor's own response.) The modes of the whole chain
+    mix it with the rotor's magnetic spring and so do move with the current;
+    the truth lists them at rated current.
+    """
+
+    resonance_hz: float
+    damping_ratio: float
+    stiffness_Nm_per_rad: float
+    damping_Nms_per_rad: float
+
+
+@dataclass(frozen=True)
+class DiskParams:
+    """A rigid steel disk on the motor shaft (the paper's inertial load)."""
+
+    inertia_kgm2: float
+
+
+@dataclass(frozen=True)
+class BeltParams:
+    """The paper's pan unit: pinion, toothed belt (N_G = 1/7), heavy camera head.
+
+    Stiffness and damping are those of the belt seen at the load shaft.
+    """
+
+    motor_pulley_inertia_kgm2: float
+    load_inertia_kgm2: float
+    stiffness_Nm_per_rad: float
+    damping_Nms_per_rad: float
+    reduction: float = BELT_REDUCTION
+
+
+@dataclass(frozen=True)
+class MechanicsParams:
+    """What the rotor drives, and what always or optionally brakes it."""
+
+    load: LoadKind
+    rotor_bearing: FrictionParams
+    disk: DiskParams | None = None
+    belt: BeltParams | None = None
+    load_bearing: FrictionParams | None = None
+    load_friction: FrictionParams | None = None
+    coupling: CouplingParams | None = None
+
+    def __post_init__(self) -> None:
+        if (self.load is LoadKind.DISK) != (self.disk is not None) or (
+            self.load is LoadKind.BELT
+        ) != (self.belt is not None):
+            raise ValueError(f"mechanics for a {self.load} load need exactly its own parameters")
+
+    @property
+    def gear_ratio(self) -> float:
+        """Load revolutions per motor revolution (ICD.md §5)."""
+        return self.belt.reduction if self.belt is not None else 1.0
+
+
+@dataclass(frozen=True)
+class SensorParams:
+    """The MEMS sensor on the load: range, bandwidth, noise, fixture geometry, clock."""
+
+    radius_m: float
+    range_g: int = 2
+    bandwidth_hz: float = 500.0
+    damping_ratio: float = 1.0 / math.sqrt(2.0)
+    noise_density_ug: float = 150.0
+    bits: int = 16
+    tangential_axis: Axis = Axis.X
+    radial_axis: Axis = Axis.Y
+    axial_axis: Axis = Axis.Z
+    clock_drift_ppm: float = 0.0
+    sample_phase: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.range_g not in SENSOR_RANGES_G:
+            raise ValueError(f"sensor range {self.range_g} g is not one of {SENSOR_RANGES_G}")
+        if len({self.tangential_axis, self.radial_axis, self.axial_axis}) != 3:
+            raise ValueError("tangential, radial and axial axes must differ")
+        if self.radius_m <= 0 or self.bandwidth_hz <= 0 or self.noise_density_ug < 0:
+            raise ValueError("radius and bandwidth must be positive, noise non-negative")
+        if not 0.0 <= self.sample_phase < 1.0:
+            raise ValueError("sample phase is a fraction of a sample period in [0, 1)")
+
+    def noise_sigma_mps2(self) -> float:
+        """σ of one sample: density times √(noise bandwidth) of the 2nd-order low-pass.
+
+        A 2nd-order low-pass ω0²/(s² + 2ζω0 s + ω0²) passes white noise as if it
+        were a brick wall of π·f0/(4ζ) Hz.
+        """
+        enbw = math.pi * self.bandwidth_hz / (4.0 * self.damping_ratio)
+        return self.noise_density_ug * 1e-6 * STANDARD_GRAVITY * math.sqrt(enbw)
+
+
+@dataclass(frozen=True)
+class UnitParams:
+    """Everything that makes one simulated unit what it is (the "truth")."""
+
+    serial: str
+    serial_number: int
+    motor: MotorParams
+    amplifier: AmplifierParams
+    mechanics: MechanicsParams
+    sensor: SensorParams
+    effects: frozenset[Effect] = frozenset()
+    rated_current_mA: int = 1000
+    microsteps: int = 256
+
+    @property
+    def rotor_teeth(self) -> int:
+        return self.motor.rotor_teeth
+
+    @property
+    def load(self) -> LoadKind:
+        return self.mechanics.load
+
+    @property
+    def gear_ratio(self) -> float:
+        return self.mechanics.gear_ratio
+
+    @property
+    def sensor_radius_m(self) -> float:
+        return self.sensor.radius_m
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready truth: every constant, and each enabled effect with its own."""
+        out: dict[str, Any] = {
+            "serial": self.serial,
+            "serial_number": self.serial_number,
+            "rated_current_mA": self.rated_current_mA,
+            "microsteps": self.microsteps,
+            "rotor_teeth": self.rotor_teeth,
+            "load": self.load.value,
+            "gear_ratio": self.gear_ratio,
+            "sensor_radius_m": self.sensor_radius_m,
+            "kt_Nm_per_A": self.motor.kt_Nm_per_A,
+            "holding_torque_Nm": self.motor.holding_torque_Nm(self.rated_current_mA / 1000.0),
+            "motor": _jsonable(self.motor),
+            "amplifier": _jsonable(self.amplifier),
+            "mechanics": _jsonable(self.mechanics),
+            "sensor": _jsonable(self.sensor),
+            "effects": [
+                {"id": effect.value, "parameters": self._effect_parameters(effect)}
+                for effect in sorted(self.effects)
+            ],
+        }
+        return out
+
+    def _effect_parameters(self, effect: Effect) -> dict[str, Any]:
+        m, a, mech, s = self.motor, self.amplifier, self.mechanics, self.sensor
+        match effect:
+            case Effect.FLUX_HARMONICS:
+                return {"phase_a": _jsonable(m.flux_a), "phase_b": _jsonable(m.flux_b),
+                        "Lm1_H": m.Lm1_H}
+            case Effect.DETENT_TORQUE:
+                peaks = {
+                    f"peak_torque_order_{d.order}_Nm": 0.5 * d.order * m.rotor_teeth
+                    * d.amplitude_H * m.field_current_A**2
+                    for d in m.detent
+                }
+                return {"harmonics": _jsonable(m.detent), **peaks}
+            case Effect.RELUCTANCE_TORQUE:
+                return {"L1_H": m.L1_H, "peak_torque_at_rated_Nm": m.rotor_teeth * m.L1_H
+                        * (self.rated_current_mA / 1000.0) ** 2}
+            case Effect.LOAD_RESONANCE:
+                # Imported here: the plant builds on these parameters, not the reverse.
+                from station.physics.plant import modal_analysis  # noqa: PLC0415
+
+                modes = modal_analysis(self, float(self.rated_current_mA))
+                return {**_jsonable(mech.coupling),
+                        "chain_modes_at_rated_current": [
+                            {"frequency_hz": float(m.frequency_hz),
+                             "damping_ratio": float(m.damping_ratio)} for m in modes]}
+            case Effect.CURRENT_DISTORTION:
+                return {"phase_a": _jsonable(a.distortion_a), "phase_b": _jsonable(a.distortion_b)}
+            case Effect.CURRENT_LOOP_LAG:
+                return {"bandwidth_a_hz": a.bandwidth_a_hz, "bandwidth_b_hz": a.bandwidth_b_hz}
+            case Effect.FRICTION:
+                return _jsonable(mech.load_friction)  # type: ignore[no-any-return]
+            case Effect.SENSOR_CLOCK_DRIFT:
+                return {"clock_drift_ppm": s.clock_drift_ppm, "sample_phase": s.sample_phase}
+
+
+def _jsonable(value: Any) -> Any:
+    if is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _jsonable(getattr(value, f.name)) for f in fields(value)}
+    if isinstance(value, Enum):
+        return value.value
+    if isinstance(value, tuple | list):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, frozenset | set):
+        return sorted(_jsonable(v) for v in value)
+    if isinstance(value, float | int | str | bool) or value is None:
+        return value
+    raise TypeError(f"cannot express {type(value).__name__} in the truth file")
+
+
+def _stream(label: str, group: str) -> np.random.Generator:
+    """A Generator for one group of constants of one unit (SHA-256 of label and group)."""
+    digest = hashlib.sha256(f"{label}/{group}".encode()).digest()
+    return np.random.default_rng(np.random.SeedSequence(int.from_bytes(digest, "big")))
+
+
+def _u(rng: np.random.Generator, low: float, high: float) -> float:
+    return float(rng.uniform(low, high))
+
+
+def _sign(rng: np.random.Generator) -> float:
+    return 1.0 if rng.random() < 0.5 else -1.0
+
+
+def _nominal_motor_speed_rad_s(rotor_teeth: int) -> float:
+    return 2.0 * math.pi * NOMINAL_ELECTRICAL_HZ / rotor_teeth
+
+
+def _draw_motor(label: str) -> MotorParams:
+    rng = _stream(label, "motor")
+    kt = _u(rng, 0.35, 0.45)
+    field_current = 10.0
+    nr = 50
+    lm1 = kt / (field_current * nr)
+    return MotorParams(
+        rotor_teeth=nr,
+        field_current_A=field_current,
+        L0_H=_u(rng, 3.0e-3, 5.0e-3),
+        Lm0_H=0.25 * lm1,
+        Lm1_H=lm1,
+        Lf0_H=0.05,
+        rotor_inertia_kgm2=_u(rng, 5.0e-6, 8.0e-6),
+    )
+
+
+def _draw_flux(label: str, lm1: float) -> tuple[tuple[FluxHarmonic, ...], tuple[FluxHarmonic, ...]]:
+    """j = 2..5 harmonics: common content, each phase a little different.
+
+    Even orders put a 1st-harmonic torque on balanced currents (moving the
+    offset null by several mA); the A/B difference of the 3rd moves the gain
+    null by tens of units. Both are what left the paper's residual trims.
+    """
+    rng = _stream(label, f"effect/{Effect.FLUX_HARMONICS.value}")
+    ratio_ranges = {2: (0.003, 0.01), 3: (0.003, 0.008), 4: (0.001, 0.004), 5: (0.001, 0.004)}
+    phase_a: list[FluxHarmonic] = []
+    phase_b: list[FluxHarmonic] = []
+    for order, (low, high) in ratio_ranges.items():
+        ratio = _u(rng, low, high)
+        phase = _u(rng, 0.0, 2.0 * math.pi)
+        for target in (phase_a, phase_b):
+            target.append(FluxHarmonic(order, lm1 * ratio * _u(rng, 0.7, 1.3),
+                                       phase + _u(rng, -0.3, 0.3)))
+    return tuple(phase_a), tuple(phase_b)
+
+
+def _draw_detent(label: str, motor: MotorParams, holding_Nm: float) -> tuple[DetentHarmonic, ...]:
+    rng = _stream(label, f"effect/{Effect.DETENT_TORQUE.value}")
+    nr, i_f = motor.rotor_teeth, motor.field_current_A
+    peak4 = _u(rng, 0.01, 0.025) * holding_Nm
+    peak8 = _u(rng, 0.1, 0.3) * peak4 * _sign(rng)
+    # Peak of -½·Lfj·j·Nr·sin(j·Nr·θ)·i_f² is ½·j·Nr·Lfj·i_f².
+    return (
+        DetentHarmonic(4, peak4 / (0.5 * 4 * nr * i_f**2)),
+        DetentHarmonic(8, peak8 / (0.5 * 8 * nr * i_f**2)),
+    )
+
+
+def _draw_reluctance(label: str, motor: MotorParams, rated_A: float) -> float:
+    rng = _stream(label, f"effect/{Effect.RELUCTANCE_TORQUE.value}")
+    fraction = _u(rng, 0.02, 0.05)
+    # τ_vr peaks at Nr·L1·I²; make that a few % of the holding torque at rated current.
+    return fraction * motor.kt_Nm_per_A * rated_A / (motor.rotor_teeth * rated_A**2)
+
+
+def _draw_amplifier(label: str) -> AmplifierParams:
+    rng = _stream(label, "amplifier")
+    return AmplifierParams(
+        offset_a_mA=_u(rng, -150.0, 150.0),
+        offset_b_mA=_u(rng, -150.0, 150.0),
+        gain_error_a=_u(rng, -0.08, 0.08),
+        gain_error_b=_u(rng, -0.08, 0.08),
+    )
+
+
+def _draw_distortion(label: str) -> tuple[tuple[CurrentHarmonic, ...], tuple[CurrentHarmonic, ...]]:
+    rng = _stream(label, f"effect/{Effect.CURRENT_DISTORTION.value}")
+    ranges = {2: (0.005, 0.015), 3: (0.003, 0.01), 5: (0.002, 0.006)}
+    phase_a: list[CurrentHarmonic] = []
+    phase_b: list[CurrentHarmonic] = []
+    for order, (low, high) in ranges.items():
+        level = _u(rng, low, high)
+        phase = _u(rng, 0.0, 2.0 * math.pi)
+        for target in (phase_a, phase_b):
+            target.append(CurrentHarmonic(order, level * _u(rng, 0.8, 1.2),
+                                          phase + _u(rng, -0.3, 0.3)))
+    return tuple(phase_a), tuple(phase_b)
+
+
+def _draw_loop_bandwidths(label: str) -> tuple[float, float]:
+    rng = _stream(label, f"effect/{Effect.CURRENT_LOOP_LAG.value}")
+    common = _u(rng, 500.0, 3000.0)
+    spread = _u(rng, 0.01, 0.05) * _sign(rng)
+    return common * (1.0 + spread / 2.0), common * (1.0 - spread / 2.0)
+
+
+def _draw_disk(label: str) -> DiskParams:
+    return DiskParams(inertia_kgm2=_u(_stream(label, "disk"), 2.0e-5, 3.0e-5))
+
+
+def _draw_belt(label: str, motor: MotorParams, rated_A: float) -> BeltParams:
+    """Belt sized so the load-on-belt mode is at 7-10 Hz at rated current.
+
+    With the rotor (plus pinion) on its magnetic spring K and the load on the
+    belt k' (both seen at the motor), the 2-DOF eigenproblem gives for a
+    wanted low eigenvalue λ: k' = λ·J_L'·(K − λ·J_m) / (K − λ·(J_L' + J_m)).
+    The high mode then lands well above 150 Hz, so 20 Hz sits between them.
+    """
+    rng = _stream(label, "belt")
+    pulley = _u(rng, 0.6e-5, 1.2e-5)
+    load = _u(rng, 0.02, 0.04)
+    f_low = _u(rng, 7.0, 10.0)
+    zeta = _u(rng, 0.04, 0.08)
+    n = BELT_REDUCTION
+    j_m = motor.rotor_inertia_kgm2 + pulley
+    j_l = load * n * n
+    k_mag = motor.kt_Nm_per_A * rated_A * motor.rotor_teeth
+    lam = (2.0 * math.pi * f_low) ** 2
+    k_motor_side = lam * j_l * (k_mag - lam * j_m) / (k_mag - lam * (j_l + j_m))
+    stiffness = k_motor_side / (n * n)
+    return BeltParams(
+        motor_pulley_inertia_kgm2=pulley,
+        load_inertia_kgm2=load,
+        stiffness_Nm_per_rad=stiffness,
+        damping_Nms_per_rad=2.0 * zeta * math.sqrt(stiffness * load),
+        reduction=n,
+    )
+
+
+def _draw_rotor_bearing(label: str, holding_Nm: float, rotor_teeth: int) -> FrictionParams:
+    rng = _stream(label, "rotor-bearing")
+    return FrictionParams(
+        coulomb_pos_Nm=_u(rng, 0.003, 0.008) * holding_Nm,
+        coulomb_neg_Nm=_u(rng, 0.003, 0.008) * holding_Nm,
+        viscous_Nms=_u(rng, 0.002, 0.004),
+        smoothing_rad_s=0.01 * _nominal_motor_speed_rad_s(rotor_teeth),
+    )
+
+
+def _draw_load_bearing(label: str, holding_load_Nm: float, load_speed: float) -> FrictionParams:
+    rng = _stream(label, "load-bearing")
+    coulomb = _u(rng, 0.01, 0.03) * holding_load_Nm
+    return FrictionParams(
+        coulomb_pos_Nm=coulomb,
+        coulomb_neg_Nm=coulomb,
+        viscous_Nms=_u(rng, 0.005, 0.02) * holding_load_Nm / load_speed,
+        smoothing_rad_s=0.02 * load_speed,
+    )
+
+
+def _draw_load_friction(label: str, holding_load_Nm: float, load_speed: float) -> FrictionParams:
+    """Friction at the load worth tens of % of the holding torque, direction dependent."""
+    rng = _stream(label, f"effect/{Effect.FRICTION.value}")
+    coulomb = _u(rng, 0.1, 0.3) * holding_load_Nm
+    return FrictionParams(
+        coulomb_pos_Nm=coulomb,
+        coulomb_neg_Nm=coulomb * _u(rng, 0.7, 1.3),
+        viscous_Nms=_u(rng, 0.02, 0.06) * holding_load_Nm / load_speed,
+        smoothing_rad_s=0.02 * load_speed,
+    )
+
+
+def _draw_coupling(label: str, downstream_inertia: float) -> CouplingParams:
+    rng = _stream(label, f"effect/{Effect.LOAD_RESONANCE.value}")
+    f = _u(rng, 60.0, 250.0)
+    zeta = _u(rng, 0.02, 0.05)
+    k = (2.0 * math.pi * f) ** 2 * downstream_inertia
+    return CouplingParams(
+        resonance_hz=f,
+        damping_ratio=zeta,
+        stiffness_Nm_per_rad=k,
+        damping_Nms_per_rad=2.0 * zeta * math.sqrt(k * downstream_inertia),
+    )
+
+
+def _draw_clock(label: str) -> tuple[float, float]:
+    rng = _stream(label, f"effect/{Effect.SENSOR_CLOCK_DRIFT.value}")
+    return _u(rng, 100.0, 500.0) * _sign(rng), _u(rng, 0.0, 1.0)
+
+
+def _concealed_effects(label: str) -> frozenset[Effect]:
+    rng = _stream(label, "effects")
+    return frozenset(e for e in Effect if rng.random() < EFFECT_PROBABILITY)
+
+
+def derive_unit(
+    serial: str,
+    *,
+    load: LoadKind = LoadKind.DISK,
+    effects: Iterable[Effect] | None = None,
+    noise_density_ug: float | None = None,
+) -> UnitParams:
+    """The simulated unit behind a serial label, always the same for the same label.
+
+    ``effects=None`` gives the unit its own concealed effects (drawn from the
+    serial); otherwise exactly the given ones, with the magnitudes this unit
+    would have had.
+    """
+    parsed = parse_serial(serial)
+    label = parsed.label
+    chosen = _concealed_effects(label) if effects is None else frozenset(Effect(e) for e in effects)
+    rated_mA = 1000
+    rated_A = rated_mA / 1000.0
+
+    motor = _draw_motor(label)
+    holding = motor.holding_torque_Nm(rated_A)
+    flux_a, flux_b = _draw_flux(label, motor.Lm1_H)
+    detent = _draw_detent(label, motor, holding)
+    l1 = _draw_reluctance(label, motor, rated_A)
+    motor = MotorParams(
+        rotor_teeth=motor.rotor_teeth,
+        field_current_A=motor.field_current_A,
+        L0_H=motor.L0_H,
+        L1_H=l1 if Effect.RELUCTANCE_TORQUE in chosen else 0.0,
+        Lm0_H=motor.Lm0_H,
+        Lm1_H=motor.Lm1_H,
+        flux_a=flux_a if Effect.FLUX_HARMONICS in chosen else (),
+        flux_b=flux_b if Effect.FLUX_HARMONICS in chosen else (),
+        Lf0_H=motor.Lf0_H,
+        detent=detent if Effect.DETENT_TORQUE in chosen else (),
+        rotor_inertia_kgm2=motor.rotor_inertia_kgm2,
+    )
+
+    amp = _draw_amplifier(label)
+    dist_a, dist_b = _draw_distortion(label)
+    bw_a, bw_b = _draw_loop_bandwidths(label)
+    distort = Effect.CURRENT_DISTORTION in chosen
+    lag = Effect.CURRENT_LOOP_LAG in chosen
+    amplifier = AmplifierParams(
+        offset_a_mA=amp.offset_a_mA,
+        offset_b_mA=amp.offset_b_mA,
+        gain_error_a=amp.gain_error_a,
+        gain_error_b=amp.gain_error_b,
+        distortion_a=dist_a if distort else (),
+        distortion_b=dist_b if distort else (),
+        bandwidth_a_hz=bw_a if lag else None,
+        bandwidth_b_hz=bw_b if lag else None,
+    )
+
+    disk = _draw_disk(label)
+    belt = _draw_belt(label, motor, rated_A)
+    motor_speed = _nominal_motor_speed_rad_s(motor.rotor_teeth)
+    ratio = belt.reduction if load is LoadKind.BELT else 1.0
+    holding_load = holding / ratio
+    load_speed = motor_speed * ratio
+    rotor_bearing = _draw_rotor_bearing(label, holding, motor.rotor_teeth)
+    load_bearing = _draw_load_bearing(label, holding_load, load_speed)
+    load_friction = _draw_load_friction(label, holding_load, load_speed)
+    downstream = disk.inertia_kgm2 if load is LoadKind.DISK else belt.motor_pulley_inertia_kgm2
+    coupling = _draw_coupling(label, downstream)
+    mechanics = MechanicsParams(
+        load=load,
+        rotor_bearing=rotor_bearing,
+        disk=disk if load is LoadKind.DISK else None,
+        belt=belt if load is LoadKind.BELT else None,
+        load_bearing=load_bearing if load is LoadKind.BELT else None,
+        load_friction=load_friction if Effect.FRICTION in chosen else None,
+        coupling=coupling if Effect.LOAD_RESONANCE in chosen else None,
+    )
+
+    sensor_rng = _stream(label, "sensor")
+    density = _u(sensor_rng, 100.0, 200.0)
+    drift_ppm, sample_phase = _draw_clock(label)
+    drift = Effect.SENSOR_CLOCK_DRIFT in chosen
+    sensor = SensorParams(
+        radius_m=0.04 if load is LoadKind.DISK else 0.10,
+        noise_density_ug=density if noise_density_ug is None else float(noise_density_ug),
+        clock_drift_ppm=drift_ppm if drift else 0.0,
+        sample_phase=sample_phase if drift else 0.0,
+    )
+    return UnitParams(
+        serial=label,
+        serial_number=parsed.number,
+        motor=motor,
+        amplifier=amplifier,
+        mechanics=mechanics,
+        sensor=sensor,
+        effects=chosen,
+        rated_current_mA=rated_mA,
+        microsteps=256,
+    )

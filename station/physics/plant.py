@@ -1,0 +1,702 @@
+"""The simulated bench's physics: drive currents, motor torque, load chain, sensor.
+
+The plant advances one SYNC period at a time, because that is the granularity
+at which the drive changes its inputs and the sensor reports (ICD.md §1). Inside
+a period it integrates the nonlinear model at a fixed step with semi-implicit
+(symplectic) Euler: trim sweeps swing the rotor far enough that a linearised
+model would lie, and a fixed step keeps runs reproducible bit for bit.
+
+The inner loop is scalar Python on ``math`` on purpose: per-step numpy calls
+cost microseconds each, which would make a ten-minute calibration schedule a
+ten-minute simulation. Everything that can be is precomputed in ``__init__``.
+"""
+
+from __future__ import annotations
+
+import cmath
+import hashlib
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.linalg import expm
+
+from station.core import GAIN_UNITY, Trims
+from station.physics.motor import QUARTER_PITCH_ELECTRICAL, MotorParams, magnetic_stiffness
+from station.physics.params import (
+    SENSOR_RANGES_G,
+    STANDARD_GRAVITY,
+    AmplifierParams,
+    Axis,
+    FrictionParams,
+    UnitParams,
+)
+
+FULL_SCALE_COUNTS = 32767
+"""A 16-bit sample saturates at ±32767 (ICD.md §3: −32768 is never sent)."""
+
+_NOISE_BLOCK = 4096
+
+
+@dataclass(frozen=True, slots=True)
+class DriveCommand:
+    """What the drive imposes during one SYNC period (piecewise constant inputs).
+
+    Built once per SYNC by the simulated drive, so it is kept light: the
+    plant checks it when it is used.
+    """
+
+    enabled: bool
+    amplitude_mA: float
+    trims: Trims
+    position_start: float
+    velocity: float
+    acceleration: float
+    microsteps_per_fullstep: int
+
+
+def commanded_currents_A(x_u: ArrayLike, amplitude_mA: float, trims: Trims,
+                         amplifier: AmplifierParams) -> tuple[NDArray[np.float64],
+                                                              NDArray[np.float64]]:
+    """Steady phase currents (A) at electrical angle x_u: ICD.md §2 plus the amplifier.
+
+    i_A = off_trim + off_amp + (1 + e_A)·(g_A/10000)·I·[cos x_u + distortion],
+    phase B likewise on sin x_u = cos(x_u − π/2). The current loop's lag is a
+    dynamic effect and is left to the plant.
+    """
+    x = np.asarray(x_u, dtype=np.float64)
+    amp = amplitude_mA * 1e-3
+    fa = (1.0 + amplifier.gain_error_a) * trims.gain_a / GAIN_UNITY * amp
+    fb = (1.0 + amplifier.gain_error_b) * trims.gain_b / GAIN_UNITY * amp
+    wave_a = np.cos(x)
+    wave_b = np.sin(x)
+    for h in amplifier.distortion_a:
+        wave_a = wave_a + h.relative * np.cos(h.order * x + h.phase_rad)
+    for h in amplifier.distortion_b:
+        shifted = h.order * (x - QUARTER_PITCH_ELECTRICAL) + h.phase_rad
+        wave_b = wave_b + h.relative * np.cos(shifted)
+    i_a = (trims.offset_a_mA + amplifier.offset_a_mA) * 1e-3 + fa * wave_a
+    i_b = (trims.offset_b_mA + amplifier.offset_b_mA) * 1e-3 + fb * wave_b
+    return np.asarray(i_a, dtype=np.float64), np.asarray(i_b, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class LumpedFriction:
+    """Friction on one inertia, all sources summed (the smallest smoothing wins)."""
+
+    viscous: float
+    coulomb_pos: float
+    coulomb_neg: float
+    smoothing: float
+
+    @staticmethod
+    def combine(sources: list[FrictionParams | None]) -> LumpedFriction:
+        present = [s for s in sources if s is not None]
+        if not present:
+            return LumpedFriction(0.0, 0.0, 0.0, 1.0)
+        return LumpedFriction(
+            sum(s.viscous_Nms for s in present),
+            sum(s.coulomb_pos_Nm for s in present),
+            sum(s.coulomb_neg_Nm for s in present),
+            min(s.smoothing_rad_s for s in present),
+        )
+
+    def torque(self, omega: float) -> float:
+        coulomb = self.coulomb_pos if omega >= 0 else self.coulomb_neg
+        return self.viscous * omega + coulomb * math.tanh(omega / self.smoothing)
+
+
+@dataclass(frozen=True)
+class Chain:
+    """The load as a chain of inertias; DOF 0 is the rotor, the last one carries the sensor.
+
+    Spring i joins DOF i and i+1 with ratio n: its twist is n·θ_i − θ_(i+1), its
+    torque acts on DOF i+1 and, times −n, back on DOF i.
+    """
+
+    inertias: tuple[float, ...]
+    springs: tuple[tuple[float, float, float], ...]
+    frictions: tuple[LumpedFriction, ...]
+
+    @property
+    def ratios(self) -> tuple[float, ...]:
+        return tuple(s[2] for s in self.springs)
+
+
+def build_chain(unit: UnitParams) -> Chain:
+    """Lump the load into the fewest inertias its compliances allow."""
+    mech = unit.mechanics
+    j_rotor = unit.motor.rotor_inertia_kgm2
+    rotor_f: list[FrictionParams | None] = [mech.rotor_bearing]
+    load_f: list[FrictionParams | None] = [mech.load_bearing, mech.load_friction]
+    coupling = mech.coupling
+    if mech.disk is not None:
+        if coupling is None:
+            return Chain((j_rotor + mech.disk.inertia_kgm2,), (),
+                         (LumpedFriction.combine(rotor_f + load_f),))
+        return Chain(
+            (j_rotor, mech.disk.inertia_kgm2),
+            ((coupling.stiffness_Nm_per_rad, coupling.damping_Nms_per_rad, 1.0),),
+            (LumpedFriction.combine(rotor_f), LumpedFriction.combine(load_f)),
+        )
+    belt = mech.belt
+    if belt is None:
+        raise ValueError("mechanics without a disk need a belt")
+    belt_spring = (belt.stiffness_Nm_per_rad, belt.damping_Nms_per_rad, belt.reduction)
+    if coupling is None:
+        return Chain(
+            (j_rotor + belt.motor_pulley_inertia_kgm2, belt.load_inertia_kgm2),
+            (belt_spring,),
+            (LumpedFriction.combine(rotor_f), LumpedFriction.combine(load_f)),
+        )
+    return Chain(
+        (j_rotor, belt.motor_pulley_inertia_kgm2, belt.load_inertia_kgm2),
+        ((coupling.stiffness_Nm_per_rad, coupling.damping_Nms_per_rad, 1.0), belt_spring),
+        (LumpedFriction.combine(rotor_f), LumpedFriction.combine([]),
+         LumpedFriction.combine(load_f)),
+    )
+
+
+@dataclass(frozen=True)
+class Mode:
+    """A mode of the linearised plant."""
+
+    frequency_hz: float
+    damping_ratio: float
+
+    @property
+    def decay_rate_per_s(self) -> float:
+        return self.damping_ratio * 2.0 * math.pi * self.frequency_hz
+
+
+def modal_analysis(unit: UnitParams, amplitude_mA: float, *,
+                   load_angle_rad: float = 0.0) -> list[Mode]:
+    """Modes of the chain with the rotor on its magnetic spring (``magnetic_stiffness``).
+
+    Coulomb friction is left out: in steady motion its tanh is saturated and
+    adds no damping. Sorted by frequency.
+    """
+    chain = build_chain(unit)
+    n = len(chain.inertias)
+    mass = np.diag(chain.inertias)
+    stiff = np.zeros((n, n))
+    damp = np.diag([f.viscous for f in chain.frictions])
+    stiff[0, 0] = magnetic_stiffness(unit.motor, amplitude_mA, load_angle_rad)
+    for i, (k, c, ratio) in enumerate(chain.springs):
+        for matrix, coeff in ((stiff, k), (damp, c)):
+            matrix[i, i] += coeff * ratio * ratio
+            matrix[i, i + 1] -= coeff * ratio
+            matrix[i + 1, i] -= coeff * ratio
+            matrix[i + 1, i + 1] += coeff
+    inv_m = np.linalg.inv(mass)
+    state = np.block([[np.zeros((n, n)), np.eye(n)], [-inv_m @ stiff, -inv_m @ damp]])
+    modes = []
+    for lam in np.linalg.eigvals(state):
+        if lam.imag > 0:
+            wn = abs(lam)
+            modes.append(Mode(wn / (2.0 * math.pi), -lam.real / wn))
+    return sorted(modes, key=lambda m: m.frequency_hz)
+
+
+def _lowpass_zoh(bandwidth_hz: float, zeta: float, step_s: float) -> tuple[float, ...]:
+    """Exact ZOH discretisation of ω0²/(s² + 2ζω0 s + ω0²), state [y, ẏ]."""
+    w0 = 2.0 * math.pi * bandwidth_hz
+    a = np.array([[0.0, 1.0], [-w0 * w0, -2.0 * zeta * w0]])
+    aug = np.zeros((3, 3))
+    aug[:2, :2] = a
+    aug[1, 2] = w0 * w0
+    d = expm(aug * step_s)
+    return (float(d[0, 0]), float(d[0, 1]), float(d[1, 0]), float(d[1, 1]),
+            float(d[0, 2]), float(d[1, 2]))
+
+
+def _lag_coefficients(bandwidth_hz: float | None, step_s: float) -> tuple[float, float, float]:
+    """First-order current loop, exact for a target that is linear over a step.
+
+    i(t+h) = a·i(t) + (b − a)·u(t) + (1 − b)·u(t+h), a = e^(−ωh), b = (1 − a)/(ωh).
+    """
+    if bandwidth_hz is None:
+        return 0.0, 0.0, 1.0
+    wh = 2.0 * math.pi * bandwidth_hz * step_s
+    a = math.exp(-wh)
+    b = (1.0 - a) / wh
+    return a, b - a, 1.0 - b
+
+
+TABLE_SIZE = 8192
+"""Points per period of the harmonic tables; linear interpolation then errs by
+less than (j·2π/8192)²/8 ≈ 2e-5 of an order-j harmonic's amplitude (j ≤ 8)."""
+
+
+def _periodic_tables(terms: dict[int, list[complex]], slots: int) -> tuple[list[float], ...] | None:
+    """Tables of Re Σ_j w_j·e^(i·j·φ) over one period, one per slot, with a wrap point.
+
+    Evaluating a handful of harmonics exactly per step costs microseconds in
+    complex Python arithmetic; an interpolated table costs a few list reads.
+    """
+    if not terms:
+        return None
+    phi = np.arange(TABLE_SIZE + 1) * (2.0 * math.pi / TABLE_SIZE)
+    tables = []
+    for slot in range(slots):
+        values = np.zeros(TABLE_SIZE + 1)
+        for order, weights in terms.items():
+            values += (weights[slot] * np.exp(1j * order * phi)).real
+        tables.append(values.tolist())
+    return tuple(tables)
+
+
+def _noise_stream(unit: UnitParams, seed: int) -> np.random.Generator:
+    if seed < 0:
+        raise ValueError("seed must be >= 0")
+    digest = hashlib.sha256(f"{unit.serial}/sensor-noise".encode()).digest()
+    return np.random.default_rng(np.random.SeedSequence([int.from_bytes(digest, "big"), seed]))
+
+
+class Plant:
+    """One unit on the bench: motor, load chain and sensor, in simulated time."""
+
+    def __init__(self, unit: UnitParams, *, sync_period_s: float = 0.001, substeps: int = 8,
+                 seed: int = 0) -> None:
+        if sync_period_s <= 0 or substeps < 1:
+            raise ValueError("the SYNC period must be positive and substeps >= 1")
+        self._unit = unit
+        self._period = sync_period_s
+        self._substeps = substeps
+        self._h = sync_period_s / substeps
+        self._syncs = 0
+        motor = unit.motor
+        self._nr = float(motor.rotor_teeth)
+        self._kt = motor.kt_Nm_per_A
+        self._chain = build_chain(unit)
+        n = len(self._chain.inertias)
+        self._theta = [0.0] * n
+        self._omega = [0.0] * n
+        self._setup_torque(motor)
+        self._setup_amplifier(unit.amplifier)
+        self._setup_sensor(unit, seed)
+        self._last_torque = 0.0
+        self._const = self._loop_constants()
+
+    # ----------------------------------------------------------------- set-up
+    def _setup_torque(self, motor: MotorParams) -> None:
+        """Torque beyond eq. (14) as i_A·F_A(θe) + i_B·F_B(θe) + F_D(θe), tabulated.
+
+        Per order j the weights w make τ_j = Re[(i_A·w_A + i_B·w_B + w_D)·e^(i·j·θe)].
+        """
+        nr, i_f = motor.rotor_teeth, motor.field_current_A
+        terms: dict[int, list[complex]] = {}
+
+        def add(order: int, slot: int, coeff: complex) -> None:
+            terms.setdefault(order, [0j, 0j, 0j])[slot] += coeff
+
+        # -j·Nr·L·i_f·sin(j·θe + φ) = Re[j·Nr·L·i_f·i·e^(iφ)·e^(i·j·θe)]
+        for h in motor.flux_a:
+            add(h.order, 0, 1j * h.order * nr * h.amplitude_H * i_f * cmath.exp(1j * h.phase_rad))
+        for h in motor.flux_b:
+            phase = h.phase_rad - h.order * QUARTER_PITCH_ELECTRICAL
+            add(h.order, 1, 1j * h.order * nr * h.amplitude_H * i_f * cmath.exp(1j * phase))
+        for d in motor.detent:
+            add(d.order, 2, 0.5j * d.order * nr * d.amplitude_H * i_f * i_f)
+        self._harmonics = _periodic_tables(terms, 3)
+        self._reluctance = nr * motor.L1_H
+
+    def _setup_amplifier(self, amp: AmplifierParams) -> None:
+        self._amp = amp
+        terms: dict[int, list[complex]] = {}
+        for slot, harmonics, shift in ((0, amp.distortion_a, 0.0),
+                                       (1, amp.distortion_b, QUARTER_PITCH_ELECTRICAL)):
+            for h in harmonics:
+                w = terms.setdefault(h.order, [0j, 0j])
+                w[slot] += h.relative * cmath.exp(1j * (h.phase_rad - h.order * shift))
+        self._distortion = _periodic_tables(terms, 2)
+        self._lag_a = _lag_coefficients(amp.bandwidth_a_hz, self._h)
+        self._lag_b = _lag_coefficients(amp.bandwidth_b_hz, self._h)
+        self._lagged = amp.bandwidth_a_hz is not None
+        # Per-command current scale: A from mA, gain error and trim gain folded in.
+        self._amp_const = (amp.offset_a_mA * 1e-3, amp.offset_b_mA * 1e-3,
+                           (1.0 + amp.gain_error_a) / GAIN_UNITY * 1e-3,
+                           (1.0 + amp.gain_error_b) / GAIN_UNITY * 1e-3)
+        self._i_a = self._i_b = 0.0
+        self._target_a = self._target_b = 0.0
+
+    def _setup_sensor(self, unit: UnitParams, seed: int) -> None:
+        s = unit.sensor
+        # The ICD promises a bandwidth of at least 40 % of the SYNC rate; a MEMS
+        # part ties its filter to its output data rate, so faster SYNC widens it.
+        bandwidth = max(s.bandwidth_hz, 0.4 / self._period)
+        self._lp_sub = _lowpass_zoh(bandwidth, s.damping_ratio, self._h)
+        self._lp_sync = _lowpass_zoh(bandwidth, s.damping_ratio, self._period)
+        self._radius = s.radius_m
+        self._sigma = replace(s, bandwidth_hz=bandwidth).noise_sigma_mps2()
+        self._rng = _noise_stream(unit, seed)
+        self._noise: list[list[float]] = [[], [], []]
+        self._noise_pos = _NOISE_BLOCK
+        order = (s.tangential_axis, s.radial_axis, s.axial_axis)
+        self._slot = tuple(order.index(axis) for axis in (Axis.X, Axis.Y, Axis.Z))
+        self._xf0 = self._xf1 = 0.0
+        self._yf0 = self._yf1 = 0.0
+        self._minus_radius = -s.radius_m
+        self._u_substeps: list[float] = []
+        # The tangential filter is linear, so one SYNC period of it is
+        # x_end = Aⁿ·x_start + Σ_k W_k·u_k: the loop accumulates two sums.
+        a00, a01, a10, a11, b0, b1 = self._lp_sub
+        step = np.array([[a00, a01], [a10, a11]])
+        drive = np.array([b0, b1])
+        weights = [np.linalg.matrix_power(step, self._substeps - 1 - k) @ drive
+                   for k in range(self._substeps)]
+        self._steps = tuple((k * self._h, float(w[0]), float(w[1]))
+                            for k, w in enumerate(weights))
+        whole = np.linalg.matrix_power(step, self._substeps)
+        self._lp_period = (float(whole[0, 0]), float(whole[0, 1]), float(whole[1, 0]),
+                           float(whole[1, 1]))
+        drift = s.clock_drift_ppm * 1e-6
+        self._drifting = drift != 0.0
+        self._sample_period = self._period * (1.0 + drift)
+        self._sample_phase = s.sample_phase
+        self.set_sensor_range(s.range_g)
+        # Until the first SYNC the sensor holds a reading at rest: gravity only.
+        at_rest = (0.0, 0.0, STANDARD_GRAVITY)
+        self._reading = (at_rest[self._slot[0]], at_rest[self._slot[1]], at_rest[self._slot[2]])
+        self._counts = self._quantise(self._reading)
+
+    # ---------------------------------------------------------------- queries
+    @property
+    def unit(self) -> UnitParams:
+        return self._unit
+
+    @property
+    def time_s(self) -> float:
+        """Simulated time: SYNC periods advanced times the period."""
+        return self._syncs * self._period
+
+    @property
+    def sync_period_s(self) -> float:
+        return self._period
+
+    @property
+    def rotor_angle_rad(self) -> float:
+        return self._theta[0]
+
+    @property
+    def rotor_velocity_rad_s(self) -> float:
+        return self._omega[0]
+
+    @property
+    def load_angle_rad(self) -> float:
+        """Angle of the inertia that carries the sensor (load side of any gearing)."""
+        return self._theta[-1]
+
+    @property
+    def load_velocity_rad_s(self) -> float:
+        return self._omega[-1]
+
+    @property
+    def phase_currents_A(self) -> tuple[float, float]:
+        """Actual phase currents at the last integration step."""
+        return self._i_a, self._i_b
+
+    @property
+    def motor_torque_Nm(self) -> float:
+        """Electromagnetic torque at the last integration step."""
+        return self._last_torque
+
+    @property
+    def sensor_reading_mps2(self) -> tuple[float, float, float]:
+        """The last sample as the sensor's X, Y, Z before noise and quantisation."""
+        return self._reading
+
+    def set_sensor_range(self, range_g: int) -> None:
+        if range_g not in SENSOR_RANGES_G:
+            raise ValueError(f"sensor range {range_g} g is not one of {SENSOR_RANGES_G}")
+        self._range_g = range_g
+        self._lsb = range_g * STANDARD_GRAVITY / 32768.0
+        self._inv_lsb = 1.0 / self._lsb
+
+    def sensor_lsb_mps2(self) -> float:
+        return self._lsb
+
+    # --------------------------------------------------------------- stepping
+    def place_on_trajectory(self, command: DriveCommand) -> None:
+        """Put the mechanics in the steady motion the command would settle into.
+
+        Every inertia moves at the commanded speed (through its gearing), each
+        compliance carries the friction downstream of it, and the rotor lags
+        the stator field by the load angle that balances the total friction.
+        Steady-state analyses start here so that only the ripple's own
+        transient is left to die out, not a start-up from rest.
+        """
+        chain = self._chain
+        kx = 2.0 * math.pi / (4.0 * command.microsteps_per_fullstep)
+        theta_u = command.position_start * kx / self._nr
+        omega_u = command.velocity * kx / self._nr
+        n = len(chain.inertias)
+        omegas = [omega_u]
+        for ratio in chain.ratios:
+            omegas.append(omegas[-1] * ratio)
+        carried = [0.0] * len(chain.springs)
+        downstream = 0.0
+        for i in range(n - 1, 0, -1):
+            downstream = chain.frictions[i].torque(omegas[i]) + (
+                chain.ratios[i] * downstream if i < n - 1 else 0.0
+            )
+            carried[i - 1] = downstream
+        needed = chain.frictions[0].torque(omegas[0])
+        if n > 1:
+            needed += chain.ratios[0] * carried[0]
+        amp = self._amp
+        trims = command.trims
+        amplitude = command.amplitude_mA * 1e-3 * 0.5 * (
+            (1 + amp.gain_error_a) * trims.gain_a + (1 + amp.gain_error_b) * trims.gain_b
+        ) / GAIN_UNITY
+        capacity = self._kt * amplitude if command.enabled else 0.0
+        rho = math.asin(max(-1.0, min(1.0, needed / capacity))) if capacity > 0 else 0.0
+        thetas = [theta_u - rho / self._nr]
+        for i, (k, _c, ratio) in enumerate(chain.springs):
+            thetas.append(ratio * thetas[-1] - carried[i] / k)
+        self._theta = thetas
+        self._omega = omegas
+        if command.enabled:
+            x = command.position_start * kx
+            i_a, i_b = commanded_currents_A(x, command.amplitude_mA, trims, amp)
+            self._i_a = self._target_a = float(i_a)
+            self._i_b = self._target_b = float(i_b)
+        else:
+            self._i_a = self._i_b = self._target_a = self._target_b = 0.0
+        self._xf0 = self._xf1 = 0.0
+        self._yf0, self._yf1 = -self._radius * omegas[-1] ** 2, 0.0
+
+    def advance(self, command: DriveCommand) -> tuple[int, int, int]:
+        """Advance one SYNC period; return the sensor's X, Y, Z counts sampled at the end
+        instant (the next SYNC): bandwidth-limited, noisy, 16-bit, saturating at ±32767."""
+        if command.microsteps_per_fullstep < 1 or command.amplitude_mA < 0:
+            raise ValueError("a command needs microsteps >= 1 and a non-negative amplitude")
+        x_start = self._xf0, self._xf1
+        y_start = self._yf0
+        self._integrate(command)
+        self._syncs += 1
+        # Radial acceleration changes slowly; filtering it at the SYNC rate is enough.
+        a00, a01, a10, a11, b0, b1 = self._lp_sync
+        y0, y1 = y_start, self._yf1
+        u = self._minus_radius * self._omega[-1] ** 2
+        self._yf0 = a00 * y0 + a01 * y1 + b0 * u
+        self._yf1 = a10 * y0 + a11 * y1 + b1 * u
+        if not self._drifting:
+            self._emit(self._xf0, self._yf0)
+            return self._counts
+        t_end = self._syncs * self._period
+        latest = math.floor(t_end / self._sample_period - self._sample_phase)
+        instant = (latest + self._sample_phase) * self._sample_period
+        into = instant - (t_end - self._period)
+        if into <= 0.0:
+            # The sensor's clock is slower: no new sample since the last SYNC.
+            return self._counts
+        # Replay the filter over this period's inputs to find it at the sample instant.
+        a00, a01, a10, a11, b0, b1 = self._lp_sub
+        x0, x1 = x_start
+        xs = [x0]
+        for u in self._u_substeps:
+            x0, x1 = a00 * x0 + a01 * x1 + b0 * u, a10 * x0 + a11 * x1 + b1 * u
+            xs.append(x0)
+        q = into / self._h
+        k = min(int(q), self._substeps - 1)
+        frac = q - k
+        tangential = xs[k] + (xs[k + 1] - xs[k]) * frac
+        radial = y_start + (self._yf0 - y_start) * (into / self._period)
+        self._emit(tangential, radial)
+        return self._counts
+
+    def _emit(self, tangential: float, radial: float) -> None:
+        """Turn the filtered tangential/radial values into the sensor's noisy counts."""
+        slot = self._slot
+        values = (tangential, radial, STANDARD_GRAVITY)
+        reading = (values[slot[0]], values[slot[1]], values[slot[2]])
+        self._reading = reading
+        if self._sigma > 0.0:
+            pos = self._noise_pos
+            if pos >= _NOISE_BLOCK:
+                self._noise = (self._rng.standard_normal((3, _NOISE_BLOCK)) * self._sigma).tolist()
+                pos = 0
+            noise = self._noise
+            self._noise_pos = pos + 1
+            reading = (reading[0] + noise[0][pos], reading[1] + noise[1][pos],
+                       reading[2] + noise[2][pos])
+        self._counts = self._quantise(reading)
+
+    def _quantise(self, values: tuple[float, float, float]) -> tuple[int, int, int]:
+        inv = self._inv_lsb
+        full = FULL_SCALE_COUNTS
+        cx = round(values[0] * inv)
+        cy = round(values[1] * inv)
+        cz = round(values[2] * inv)
+        return (
+            full if cx > full else -full if cx < -full else cx,
+            full if cy > full else -full if cy < -full else cy,
+            full if cz > full else -full if cz < -full else cz,
+        )
+
+    def _loop_constants(self) -> tuple[Any, ...]:
+        """Everything the hot loop reads, in one tuple: one unpack instead of dozens of lookups."""
+        chain = self._chain
+        ndof = len(chain.inertias)
+        f0, fl = chain.frictions[0], chain.frictions[-1]
+        k1, c1, n1 = chain.springs[0] if ndof > 1 else (0.0, 0.0, 0.0)
+        k2, c2, n2 = chain.springs[1] if ndof > 2 else (0.0, 0.0, 0.0)
+        return (
+            self._h, self._nr, self._kt, self._harmonics, self._reluctance,
+            self._distortion, self._lagged, *self._lag_a, *self._lag_b,
+            ndof, f0.viscous, f0.coulomb_pos, f0.coulomb_neg, 1.0 / f0.smoothing,
+            fl.viscous, fl.coulomb_pos, fl.coulomb_neg, 1.0 / fl.smoothing,
+            fl.coulomb_pos > 0.0 or fl.coulomb_neg > 0.0,
+            chain.inertias[0], chain.inertias[1] if ndof == 3 else 1.0, chain.inertias[-1],
+            k1, c1, n1, k2, c2, n2, self._radius / self._h, self._steps, *self._lp_period,
+            self._drifting,
+        )
+
+    def _integrate(self, command: DriveCommand) -> None:
+        """The hot loop: one SYNC period in ``substeps`` semi-implicit Euler steps.
+
+        Velocities are updated first from the forces at the current angles,
+        then angles from the new velocities (symplectic Euler, so the lightly
+        damped modes neither gain nor lose energy numerically). Friction is
+        linearised implicitly: the tanh's steep slope near zero speed would
+        otherwise make an explicit step unstable.
+        """
+        sin, cos, tanh = math.sin, math.cos, math.tanh
+        floor = math.floor
+        tsize = TABLE_SIZE
+        tscale = TABLE_SIZE / (2.0 * math.pi)
+        (h, nr, kt, harmonics, rel, distortion, lagged, la0, la1, la2, lb0, lb1, lb2,
+         ndof, cv0, cp0, cn0, iw0, cvl, cpl, cnl, iwl, coulomb_l, j0, j1, jl,
+         k1, c1, n1, k2, c2, n2, r_over_h, steps, p00, p01, p10, p11, drifting) = self._const
+        enabled = command.enabled
+        kx = 2.0 * math.pi / (4.0 * command.microsteps_per_fullstep)
+        # Electrical angle x(t) = x0 + (xv + xa·t)·t over the period.
+        x0 = command.position_start * kx
+        xv = command.velocity * kx
+        xa = 0.5 * command.acceleration * kx
+        trims = command.trims
+        amp_off_a, amp_off_b, amp_gain_a, amp_gain_b = self._amp_const
+        off_a = trims.offset_a_mA * 1e-3 + amp_off_a
+        off_b = trims.offset_b_mA * 1e-3 + amp_off_b
+        fa = amp_gain_a * trims.gain_a * command.amplitude_mA
+        fb = amp_gain_b * trims.gain_b * command.amplitude_mA
+        if not enabled:
+            distortion = None
+            lagged = False
+        fa_tab, fb_tab, fd_tab = harmonics if harmonics else ((), (), ())
+        da_tab, db_tab = distortion if distortion else ((), ())
+        if enabled:
+            i_a, i_b, t_a, t_b = self._i_a, self._i_b, self._target_a, self._target_b
+        else:
+            i_a = i_b = t_a = t_b = 0.0
+        th = self._theta
+        om = self._omega
+        th0, om0, thl, oml = th[0], om[0], th[-1], om[-1]
+        th1 = th[1] if ndof == 3 else 0.0
+        om1 = om[1] if ndof == 3 else 0.0
+        acc0 = acc1 = 0.0
+        ubuf: list[float] = []
+        tau = 0.0
+        for t, w0, w1 in steps:
+            # Drive: phase currents from the position demand at this instant.
+            if enabled:
+                x = x0 + (xv + xa * t) * t
+                cx = cos(x)
+                sx = sin(x)
+                ua = off_a + fa * cx
+                ub = off_b + fb * sx
+                if distortion:
+                    q = x * tscale
+                    kf = floor(q)
+                    fr = q - kf
+                    kt_ = kf % tsize
+                    g = da_tab[kt_]
+                    ua += fa * (g + (da_tab[kt_ + 1] - g) * fr)
+                    g = db_tab[kt_]
+                    ub += fb * (g + (db_tab[kt_ + 1] - g) * fr)
+                if lagged:
+                    i_a = la0 * i_a + la1 * t_a + la2 * ua
+                    i_b = lb0 * i_b + lb1 * t_b + lb2 * ub
+                    t_a = ua
+                    t_b = ub
+                else:
+                    i_a = ua
+                    i_b = ub
+            # Motor: eq. (1) for the fundamental, then whatever the unit adds.
+            te = nr * th0
+            s1 = sin(te)
+            co1 = cos(te)
+            tau = kt * (i_b * co1 - i_a * s1)
+            if harmonics:
+                q = te * tscale
+                kf = floor(q)
+                fr = q - kf
+                kt_ = kf % tsize
+                g = fa_tab[kt_]
+                tau += i_a * (g + (fa_tab[kt_ + 1] - g) * fr)
+                g = fb_tab[kt_]
+                tau += i_b * (g + (fb_tab[kt_ + 1] - g) * fr)
+                g = fd_tab[kt_]
+                tau += g + (fd_tab[kt_ + 1] - g) * fr
+            if rel:
+                tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
+                              - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
+            # Mechanics: friction implicit (linearised), springs explicit.
+            tf = tanh(om0 * iw0)
+            cc = cp0 if om0 >= 0.0 else cn0
+            f0 = cv0 * om0 + cc * tf
+            df0 = cv0 + cc * iw0 * (1.0 - tf * tf)
+            if ndof == 1:
+                new0 = om0 + h * (tau - f0) / (j0 + h * df0)
+                u = (new0 - om0) * r_over_h
+                om0 = new0
+                th0 += h * new0
+            else:
+                if coulomb_l:
+                    tl = tanh(oml * iwl)
+                    ccl = cpl if oml >= 0.0 else cnl
+                    fl = cvl * oml + ccl * tl
+                    dfl = cvl + ccl * iwl * (1.0 - tl * tl)
+                else:
+                    fl = cvl * oml
+                    dfl = cvl
+                if ndof == 2:
+                    ts = k1 * (n1 * th0 - thl) + c1 * (n1 * om0 - oml)
+                    new0 = om0 + h * (tau - n1 * ts - f0) / (j0 + h * df0)
+                    newl = oml + h * (ts - fl) / (jl + h * dfl)
+                else:
+                    ts = k1 * (n1 * th0 - th1) + c1 * (n1 * om0 - om1)
+                    ts2 = k2 * (n2 * th1 - thl) + c2 * (n2 * om1 - oml)
+                    new0 = om0 + h * (tau - n1 * ts - f0) / (j0 + h * df0)
+                    om1 += h * (ts - n2 * ts2) / j1
+                    th1 += h * om1
+                    newl = oml + h * (ts2 - fl) / (jl + h * dfl)
+                u = (newl - oml) * r_over_h
+                om0 = new0
+                th0 += h * new0
+                oml = newl
+                thl += h * newl
+            # Sensor front end: its analog low-pass sees r·α continuously.
+            acc0 += w0 * u
+            acc1 += w1 * u
+            if drifting:
+                ubuf.append(u)
+        if ndof == 1:
+            self._theta = [th0]
+            self._omega = [om0]
+        elif ndof == 2:
+            self._theta = [th0, thl]
+            self._omega = [om0, oml]
+        else:
+            self._theta = [th0, th1, thl]
+            self._omega = [om0, om1, oml]
+        xs0, xs1 = self._xf0, self._xf1
+        self._xf0 = p00 * xs0 + p01 * xs1 + acc0
+        self._xf1 = p10 * xs0 + p11 * xs1 + acc1
+        self._u_substeps = ubuf
+        self._i_a, self._i_b = i_a, i_b
+        self._target_a, self._target_b = (t_a, t_b) if lagged else (i_a, i_b)
+        self._last_torque = tau
