@@ -329,6 +329,7 @@ class RecordingWriter(can.Listener):
         self._writer: can.Listener | None = _open_log_writer(self._tmp)
         self.frames_seen = 0
         self.frames_written = 0
+        self._failure: Exception | None = None
         self._closed = False
 
     def _dropped(self) -> bool:
@@ -342,25 +343,34 @@ class RecordingWriter(can.Listener):
         return bool(draw < self._loss)
 
     def on_message_received(self, msg: can.Message) -> None:
+        """Called on the bus reader's thread: it must never raise there, or the
+        station's notifier dies and every later SDO times out. A writer failure
+        is kept and reported by ``commit``."""
         with self._lock:
-            if self._writer is None:
+            if self._writer is None or self._failure is not None:
                 return
             self.frames_seen += 1
-            if self._clock is not None:
-                msg = can.Message(
-                    timestamp=self._clock.stamp(msg),
-                    arbitration_id=msg.arbitration_id,
-                    is_extended_id=msg.is_extended_id,
-                    is_remote_frame=msg.is_remote_frame,
-                    is_error_frame=msg.is_error_frame,
-                    is_rx=msg.is_rx,
-                    dlc=msg.dlc,
-                    data=msg.data,
-                    channel=msg.channel,
-                )
+            stamp = msg.timestamp if self._clock is None else self._clock.stamp(msg)
             if self._dropped():
                 return
-            self._writer.on_message_received(msg)
+            # One recording is one bus: the channel is left to the writer's
+            # default, since interface channel names ("can0", a virtual channel's
+            # name) map to log channel numbers differently per format.
+            copy = can.Message(
+                timestamp=stamp,
+                arbitration_id=msg.arbitration_id,
+                is_extended_id=msg.is_extended_id,
+                is_remote_frame=msg.is_remote_frame,
+                is_error_frame=msg.is_error_frame,
+                is_rx=msg.is_rx,
+                dlc=msg.dlc,
+                data=msg.data,
+            )
+            try:
+                self._writer.on_message_received(copy)
+            except Exception as exc:
+                self._failure = exc
+                return
             self.frames_written += 1
 
     def _stop_writer(self) -> None:
@@ -374,6 +384,11 @@ class RecordingWriter(can.Listener):
         if self._closed:
             raise RecordingError(f"{self.path}: recording already closed")
         self._closed = True
+        if self._failure is not None:
+            self.discard()
+            raise RecordingError(
+                f"{self.path}: the log writer failed during the run: {self._failure}"
+            ) from self._failure
         try:
             self._stop_writer()
             os.replace(self._tmp, self.path)

@@ -148,3 +148,40 @@ def test_missing_or_broken_metadata_is_a_recording_error(tmp_path: Path) -> None
     (tmp_path / "run.json").write_text("{not json")
     with pytest.raises(RecordingError, match="not valid JSON"):
         read_metadata(tmp_path / "run.asc")
+
+
+@pytest.mark.parametrize("fmt", list(LogFormat))
+def test_bus_channel_names_ending_in_digits_do_not_break_any_format(
+    tmp_path: Path, fmt: LogFormat
+) -> None:
+    # python-can turns a channel name's trailing digits into a channel number;
+    # a virtual channel named after a uuid once overflowed BLF's 16-bit field.
+    path = tmp_path / f"run{fmt.value}"
+    frames = _frames(5)
+    for msg in frames:
+        msg.channel = "station-sim-5f0c8a4477123456789"
+    with RecordingWriter(path, _metadata()) as rec:
+        for msg in frames:
+            rec.on_message_received(msg)
+        rec.commit()
+    assert len(list(can.LogReader(str(path)))) == len(frames)
+
+
+class _BrokenWriter(can.Listener):
+    def on_message_received(self, msg: can.Message) -> None:
+        raise OSError(28, "No space left on device")
+
+    def stop(self) -> None:
+        pass
+
+
+def test_a_failing_log_writer_is_reported_at_commit_not_on_the_bus_thread(tmp_path: Path) -> None:
+    path = tmp_path / "run.asc"
+    with RecordingWriter(path, _metadata()) as rec:
+        rec._writer.stop()  # type: ignore[union-attr]
+        rec._writer = _BrokenWriter()
+        for msg in _frames(3):
+            rec.on_message_received(msg)  # must not raise: it runs on the notifier thread
+        with pytest.raises(RecordingError, match="log writer failed"):
+            rec.commit()
+    assert list(tmp_path.iterdir()) == []
