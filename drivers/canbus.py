@@ -23,7 +23,6 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from enum import IntEnum
 from types import MappingProxyType, TracebackType
 from typing import Any, Self
 
@@ -33,6 +32,14 @@ from canopen.objectdictionary import ObjectDictionaryError, ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from drivers.base import DeviceIdentity
+from drivers.cia301 import (
+    NMT_COB_ID,
+    SYNC_COB_ID,
+    TPDO1_COB_BASE,
+    TPDO2_COB_BASE,
+    NmtCommand,
+    NmtState,
+)
 from station.errors import DeviceError, DeviceTimeout, InputError, SdoAbort
 
 log = logging.getLogger(__name__)
@@ -44,7 +51,6 @@ DEFAULT_BITRATE = 1_000_000
 DEFAULT_RECEIVE_POLL_S = 0.1
 """How long the notifier blocks per read; bounds how long closing a network takes."""
 
-SYNC_COB_ID = 0x080
 SYNC_PRODUCER = "SYNC producer"
 """How errors of the station's own SYNC production name their source."""
 SYNC_COUNTER_OVERFLOW = 240
@@ -53,32 +59,9 @@ DEFAULT_SYNC_PERIOD_S = 0.001
 DEFAULT_SYNC_TIMEOUT_S = 0.5
 DEFAULT_MAX_MISSING_CYCLES = 20
 
-TPDO1_COB_BASE = 0x180
-TPDO2_COB_BASE = 0x280
-HEARTBEAT_COB_BASE = 0x700
-NMT_COB_ID = 0x000
 
 _RESERVED_BUS_KEYS = frozenset({"interface", "channel", "bitrate"})
 _CIA301_MAX_SYNC_OVERFLOW = 240
-
-
-class NmtCommand(IntEnum):
-    """CiA 301 NMT command specifiers (first byte of COB-ID 0x000)."""
-
-    START_REMOTE_NODE = 0x01
-    STOP_REMOTE_NODE = 0x02
-    ENTER_PRE_OPERATIONAL = 0x80
-    RESET_NODE = 0x81
-    RESET_COMMUNICATION = 0x82
-
-
-class NmtState(IntEnum):
-    """NMT states as a heartbeat reports them (toggle bit masked off)."""
-
-    BOOT_UP = 0x00
-    STOPPED = 0x04
-    OPERATIONAL = 0x05
-    PRE_OPERATIONAL = 0x7F
 
 
 @dataclass(frozen=True)
@@ -124,6 +107,29 @@ class BusConfig:
             raise InputError(f"CAN bitrate must be an integer, not {bitrate!r}")
         options = {k: v for k, v in data.items() if k not in _RESERVED_BUS_KEYS}
         return cls(interface=interface, channel=channel, bitrate=bitrate, options=options)
+
+    @classmethod
+    def from_python_can_config(
+        cls, *, path: str | None = None, context: str | None = None
+    ) -> BusConfig:
+        """The bus python-can itself is configured for on this machine.
+
+        A bench PC usually already names its adapter for python-can
+        (``CAN_INTERFACE``/``CAN_CHANNEL``/``CAN_BITRATE``, ``~/.canrc``, a
+        section chosen by ``context``); the station then needs no bus settings.
+        """
+        try:
+            found = dict(can.util.load_config(path=path, context=context))
+        except (can.CanInterfaceNotImplementedError, ValueError) as exc:
+            # python-can says 'Unknown interface type "None"' when nothing is set.
+            raise InputError(
+                f"python-can configuration names no usable interface ({exc}); "
+                "set CAN_INTERFACE or an 'interface' in ~/.canrc"
+            ) from exc
+        found.setdefault("bitrate", DEFAULT_BITRATE)
+        if found.get("channel") is None:
+            found["channel"] = DEFAULT_CHANNEL
+        return cls.from_mapping(found)
 
     def describe(self) -> str:
         """How the bus is named in error messages and logs."""

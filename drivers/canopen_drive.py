@@ -22,8 +22,6 @@ import canopen
 from drivers.base import CalibrationRecord, DeviceIdentity, Drive, DriveState, decode_statusword
 from drivers.canbus import (
     HeartbeatWatch,
-    NmtCommand,
-    NmtState,
     SdoChannel,
     attach_remote_node,
     check_node_id,
@@ -31,6 +29,7 @@ from drivers.canbus import (
     send_nmt,
     start_node,
 )
+from drivers.cia301 import NmtCommand, NmtState, Signature
 from drivers.eds import DeviceKind, load_od
 from station.core import Trims
 from station.errors import DeviceError, DeviceStateError, DeviceTimeout, InputError, StationError
@@ -85,8 +84,6 @@ class Controlword(IntEnum):
 
 PROFILE_VELOCITY_MODE = 3
 STEPPER_DRIVE_DEVICE_TYPE = 0x00030192
-STORE_SIGNATURE = 0x65766173
-"""ASCII "save", little-endian (CiA 301 0x1010)."""
 STORE_ON_COMMAND = 0x01
 """Bit 0 of a 0x1010 read: the device saves parameters when commanded."""
 STORE_ALL_SUB = 1
@@ -296,7 +293,7 @@ class CanopenDrive(Drive):
 
     def store(self) -> None:
         with self._sdo.timeout(self._store_timeout_s):
-            self._sdo.write(DriveObject.STORE_PARAMETERS, STORE_ALL_SUB, STORE_SIGNATURE)
+            self._sdo.write(DriveObject.STORE_PARAMETERS, STORE_ALL_SUB, Signature.SAVE)
         # The download was acknowledged; the device must also claim to save on command.
         capability = self._sdo.read_int(DriveObject.STORE_PARAMETERS, STORE_ALL_SUB)
         if not capability & STORE_ON_COMMAND:

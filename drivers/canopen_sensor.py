@@ -20,7 +20,6 @@ import numpy.typing as npt
 
 from drivers.base import AccelerationSensor, DeviceIdentity, SensorCapture
 from drivers.canbus import (
-    TPDO1_COB_BASE,
     HeartbeatWatch,
     SdoChannel,
     attach_remote_node,
@@ -28,6 +27,7 @@ from drivers.canbus import (
     detach_remote_node,
     start_node,
 )
+from drivers.cia301 import TPDO1_COB_BASE
 from drivers.eds import DeviceKind, load_od
 from station.errors import DeviceStateError, InputError
 

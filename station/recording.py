@@ -26,10 +26,10 @@ import numpy as np
 from can.io.mf4 import STD_DTYPE, MF4Writer
 from can.util import channel2int
 
+from drivers.cia301 import SYNC_COB_ID
 from station.errors import InputError, RecordingError
 
 RECORDING_FORMAT: Final = "hsm-recording/1"
-SYNC_COB_ID: Final = 0x080
 
 # Time one 8-byte standard frame occupies at 1 Mbit/s with typical bit stuffing;
 # used to space simulated timestamps the way a real bus would.

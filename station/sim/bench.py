@@ -20,6 +20,7 @@ from types import TracebackType
 import can
 import canopen
 
+from drivers.cia301 import SYNC_COB_ID
 from station.core import Effect, LoadKind
 from station.paths import sim_state_dir
 from station.physics.params import UnitParams, derive_unit
@@ -31,7 +32,6 @@ from station.sim.trajectory import period_us
 
 _log = logging.getLogger(__name__)
 
-SYNC_COB_ID = 0x080
 
 _NOTIFIER_CYCLE_S = 0.05
 """How long the bus reader may block: bounds how long ``close`` waits for it."""

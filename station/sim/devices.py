@@ -36,6 +36,7 @@ from canopen.objectdictionary import ODVariable, datatypes
 from canopen.sdo.exceptions import SdoAbortedError
 
 from drivers.base import DriveState
+from drivers.cia301 import AbortCode, NmtCommand, NmtState, Signature
 from drivers.eds import PERSISTED, DeviceKind, load_od
 from station.core import GAIN_UNITY, NOMINAL_TRIMS, Trims
 from station.errors import DeviceError
@@ -46,41 +47,6 @@ from station.sim.eeprom import Eeprom, ObjectKey, key_text
 _log = logging.getLogger(__name__)
 
 Value = int | float | str
-
-
-class AbortCode(IntEnum):
-    """CiA 301 SDO abort codes the simulated devices give on purpose."""
-
-    READ_ONLY = 0x06010002
-    VALUE_RANGE = 0x06090030
-    CANNOT_STORE = 0x08000020
-    DEVICE_STATE = 0x08000022
-
-
-class NmtCommand(IntEnum):
-    """CiA 301 NMT command specifiers (first byte of COB-ID 0x000)."""
-
-    START = 0x01
-    STOP = 0x02
-    ENTER_PRE_OPERATIONAL = 0x80
-    RESET_NODE = 0x81
-    RESET_COMMUNICATION = 0x82
-
-
-class NmtState(IntEnum):
-    """CiA 301 NMT states as the heartbeat reports them."""
-
-    INITIALISING = 0x00
-    STOPPED = 0x04
-    OPERATIONAL = 0x05
-    PRE_OPERATIONAL = 0x7F
-
-
-class Signature(IntEnum):
-    """CiA 301 signatures for 0x1010 (store) and 0x1011 (restore)."""
-
-    SAVE = 0x65766173
-    LOAD = 0x64616F6C
 
 
 class FaultCode(IntEnum):

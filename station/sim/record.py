@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-from drivers.canbus import BusConfig, SteppedSync, open_network
+from drivers.canbus import BusConfig, SteppedSync, bench_tpdo_cob_ids, open_network
 from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import CanopenSensor
 from station import __version__
@@ -206,11 +206,12 @@ def record_schedule(
             clock = SteppedSync(
                 network,
                 period_s=config.sync_period_s,
-                expected_cob_ids={
-                    0x180 + config.sensor_node: sensor.name,
-                    0x180 + config.drive_node: drive.name,
-                    0x280 + config.drive_node: drive.name,
-                },
+                expected_cob_ids=bench_tpdo_cob_ids(
+                    config.drive_node,
+                    config.sensor_node,
+                    drive_name=drive.name,
+                    sensor_name=sensor.name,
+                ),
             )
             with RecordingWriter(
                 request.out,

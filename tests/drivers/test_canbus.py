@@ -17,9 +17,7 @@ import canopen
 import pytest
 
 from drivers.canbus import (
-    SYNC_COB_ID,
     BusConfig,
-    NmtCommand,
     PeriodicSync,
     SteppedSync,
     bench_tpdo_cob_ids,
@@ -29,6 +27,7 @@ from drivers.canbus import (
     set_pre_operational,
     sync_counter,
 )
+from drivers.cia301 import SYNC_COB_ID, NmtCommand
 from station.errors import DeviceTimeout, InputError
 
 SENSOR_COB = 0x190
@@ -265,3 +264,21 @@ def test_periodic_sync_repeats_the_counter_sequence_in_wall_clock_time() -> None
 def test_sync_counter_overflow_outside_cia301_range_is_refused() -> None:
     with open_network(BusConfig(channel=_channel())) as network, pytest.raises(InputError):
         PeriodicSync(network, counter_overflow=241)
+
+
+def test_bus_can_come_from_python_cans_own_configuration(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", "bench-7")
+    monkeypatch.setenv("CAN_BITRATE", "500000")
+    config = BusConfig.from_python_can_config(path="/nonexistent/canrc")
+    assert (config.interface, config.channel, config.bitrate) == ("virtual", "bench-7", 500000)
+
+
+def test_python_can_configuration_without_interface_is_an_input_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    for name in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("HOME", "/nonexistent")
+    with pytest.raises(InputError, match="names no usable interface"):
+        BusConfig.from_python_can_config(path="/nonexistent/canrc")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import uuid
 from collections.abc import Iterator
-from pathlib import Path
 
 import canopen
 import pytest
@@ -22,31 +21,10 @@ from station.errors import (
     SdoAbort,
 )
 from station.serials import label_for
-from station.sim.bench import SimBench, SimBenchConfig
+from station.sim.bench import SimBench
 from station.sim.devices import FaultCode
 
 VALUE_RANGE_EXCEEDED = 0x06090030
-
-
-@pytest.fixture
-def channel() -> str:
-    return f"test-drive-{uuid.uuid4().hex}"
-
-
-@pytest.fixture
-def bench(channel: str, tmp_path: Path) -> Iterator[SimBench]:
-    sim = SimBench(SimBenchConfig(serial="SN123", channel=channel), state_dir=tmp_path / "eeprom")
-    sim.start()
-    try:
-        yield sim
-    finally:
-        sim.close()
-
-
-@pytest.fixture
-def network(bench: SimBench, channel: str) -> Iterator[canopen.Network]:
-    with open_network(BusConfig(channel=channel)) as net:
-        yield net
 
 
 @pytest.fixture

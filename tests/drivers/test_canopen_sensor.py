@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import struct
 import threading
-import uuid
 from collections.abc import Iterator
-from pathlib import Path
 
 import can
 import canopen
@@ -14,7 +12,7 @@ import numpy as np
 import pytest
 
 from drivers.base import DriveState
-from drivers.canbus import BusConfig, SteppedSync, bench_tpdo_cob_ids, open_network
+from drivers.canbus import SteppedSync, bench_tpdo_cob_ids
 from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import (
     CanopenSensor,
@@ -23,32 +21,11 @@ from drivers.canopen_sensor import (
     decode_samples,
 )
 from station.errors import DeviceStateError, DeviceTimeout, InputError
-from station.sim.bench import SimBench, SimBenchConfig
+from station.sim.bench import SimBench
 
 STANDARD_GRAVITY = 9.80665
 SENSOR_TPDO1 = 0x190
 END_MARKER_COB = 0x7FF
-
-
-@pytest.fixture
-def channel() -> str:
-    return f"test-sensor-{uuid.uuid4().hex}"
-
-
-@pytest.fixture
-def bench(channel: str, tmp_path: Path) -> Iterator[SimBench]:
-    sim = SimBench(SimBenchConfig(serial="SN123", channel=channel), state_dir=tmp_path / "eeprom")
-    sim.start()
-    try:
-        yield sim
-    finally:
-        sim.close()
-
-
-@pytest.fixture
-def network(bench: SimBench, channel: str) -> Iterator[canopen.Network]:
-    with open_network(BusConfig(channel=channel)) as net:
-        yield net
 
 
 @pytest.fixture
