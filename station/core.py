@@ -22,6 +22,19 @@ class Effect(StrEnum):
     SENSOR_CLOCK_DRIFT = "sensor_clock_drift"
 
 
+class Axis(StrEnum):
+    """Sensor axes as the recording metadata names them (ICD.md §5)."""
+
+    X = "x"
+    Y = "y"
+    Z = "z"
+
+    @property
+    def column(self) -> int:
+        """Position of the axis in the sensor's X, Y, Z sample."""
+        return "xyz".index(self.value)
+
+
 class LoadKind(StrEnum):
     """The mechanical loads of the paper: a disk on the shaft, or the belt pan unit."""
 

@@ -27,6 +27,7 @@ from can.io.mf4 import STD_DTYPE, MF4Writer
 from can.util import channel2int
 
 from drivers.cia301 import SYNC_COB_ID
+from station.core import Axis
 from station.errors import InputError, RecordingError
 
 RECORDING_FORMAT: Final = "hsm-recording/1"
@@ -76,17 +77,6 @@ _REQUIRED_KEYS: Final[dict[str, type | tuple[type, ...]]] = {
     "sensor_radius_m": (int, float),
     "gear_ratio": (int, float),
 }
-
-
-class Axis(StrEnum):
-    X = "x"
-    Y = "y"
-    Z = "z"
-
-    @property
-    def column(self) -> int:
-        """Position of the axis in the sensor's X, Y, Z sample."""
-        return "xyz".index(self.value)
 
 
 @dataclass(frozen=True)

@@ -51,8 +51,11 @@ class Hold:
 
 @dataclass(frozen=True)
 class Schedule:
+    """Holds in order, with the microstep resolution their velocities assume."""
+
     name: str
     holds: tuple[Hold, ...]
+    microsteps: int = 256
 
     @property
     def cycles(self) -> int:
@@ -124,7 +127,7 @@ def calibration_schedule(
         trims = replace(NOMINAL_TRIMS, gain_a=gain_a, gain_b=2 * GAIN_UNITY - gain_a)
         holds.append(Hold(Phase.SWEEP_GAIN, v, amp, trims, dwell))
     holds.append(Hold(Phase.STOP, 0, amp, NOMINAL_TRIMS, still))
-    return Schedule(ScheduleName.CALIBRATION.value, tuple(holds))
+    return Schedule(ScheduleName.CALIBRATION.value, tuple(holds), microsteps)
 
 
 @dataclass(frozen=True)
@@ -173,7 +176,7 @@ def characterization_schedule(
                 holds.append(Hold(Phase.CONDITION, v, amp, NOMINAL_TRIMS, settle))
                 holds.extend(Hold(phase, v, amp, trims, step) for phase, trims in steps)
     holds.append(Hold(Phase.STOP, 0, top, NOMINAL_TRIMS, still))
-    return Schedule(ScheduleName.CHARACTERIZATION.value, tuple(holds))
+    return Schedule(ScheduleName.CHARACTERIZATION.value, tuple(holds), microsteps)
 
 
 def named_schedule(

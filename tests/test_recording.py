@@ -9,9 +9,9 @@ from pathlib import Path
 import can
 import pytest
 
+from station.core import Axis
 from station.errors import InputError, RecordingError
 from station.recording import (
-    Axis,
     LogFormat,
     RecordingMetadata,
     RecordingWriter,

@@ -5,6 +5,7 @@ one SYNC period at a time; the truth a calibration is judged against comes
 from ``optimal_trims`` on the same plant.
 """
 
+from station.core import Axis
 from station.physics.motor import (
     DetentHarmonic,
     FluxHarmonic,
@@ -23,7 +24,6 @@ from station.physics.optimum import optimal_trims, settle_time_s, steady_harmoni
 from station.physics.params import (
     STANDARD_GRAVITY,
     AmplifierParams,
-    Axis,
     BeltParams,
     CouplingParams,
     CurrentHarmonic,

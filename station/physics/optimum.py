@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 
 from station.core import GAIN_UNITY, Trims
 from station.dsp.demod import harmonic_phasors
-from station.physics.params import Axis, UnitParams
+from station.physics.params import UnitParams
 from station.physics.plant import DriveCommand, Plant, modal_analysis
 
 OFFSET_STEP_mA = 20.0
@@ -81,7 +81,7 @@ def steady_harmonics(
     plant.place_on_trajectory(
         DriveCommand(True, amplitude_mA, trims, 0.0, velocity, 0.0, m)
     )
-    axis = list(Axis).index(unit.sensor.tangential_axis)
+    axis = unit.sensor.tangential_axis.column
     acc = np.empty(measured)
     for n in range(settle + measured):
         plant.advance(DriveCommand(True, amplitude_mA, trims, velocity * n * sync_period_s,

@@ -19,12 +19,12 @@ import hashlib
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, fields, is_dataclass
-from enum import Enum, StrEnum
+from enum import Enum
 from typing import Any
 
 import numpy as np
 
-from station.core import Effect, LoadKind
+from station.core import Axis, Effect, LoadKind
 from station.physics.motor import DetentHarmonic, FluxHarmonic, MotorParams
 from station.serials import parse_serial
 
@@ -59,14 +59,6 @@ EFFECT_PROBABILITY = 0.2
 
 BELT_REDUCTION = 1.0 / 7.0
 """The paper's pan unit: N_G = 1/7 (load revolutions per motor revolution)."""
-
-
-class Axis(StrEnum):
-    """Sensor axes as named in the recording metadata (ICD.md §5)."""
-
-    X = "x"
-    Y = "y"
-    Z = "z"
 
 
 @dataclass(frozen=True)

@@ -23,13 +23,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
-from station.core import GAIN_UNITY, Trims
+from station.core import GAIN_UNITY, Axis, Trims
 from station.physics.motor import QUARTER_PITCH_ELECTRICAL, MotorParams, magnetic_stiffness
 from station.physics.params import (
     SENSOR_RANGES_G,
     STANDARD_GRAVITY,
     AmplifierParams,
-    Axis,
     FrictionParams,
     UnitParams,
 )

@@ -22,13 +22,12 @@ from drivers.canbus import BusConfig, SteppedSync, bench_tpdo_cob_ids, open_netw
 from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import CanopenSensor
 from station import __version__
-from station.core import Effect, LoadKind, Trims
-from station.errors import DeviceError, IdentityMismatch, InputError
+from station.core import Axis, Effect, LoadKind, Trims
+from station.errors import DeviceError, DeviceStateError, IdentityMismatch, InputError
 from station.paths import sim_state_dir, truth_dir
 from station.physics.optimum import optimal_trims
 from station.physics.params import UnitParams, derive_unit
 from station.recording import (
-    Axis,
     RecordingMetadata,
     RecordingWriter,
     SimulatedClock,
@@ -162,17 +161,12 @@ def record_schedule(
 ) -> SimRecordResult:
     """Record any schedule on a simulated bench (benchmarks and tests use their own)."""
     request.validate()
-    unit = derive_unit(
-        request.serial.label,
-        load=request.load,
-        effects=request.effects,
-        noise_density_ug=request.noise_density_ug,
-    )
     config = SimBenchConfig(
         serial=request.serial.label,
         load=request.load,
-        effects=unit.effects,
+        effects=request.effects,
         seed=request.seed,
+        # A private channel per run: two recordings in one process never hear each other.
         channel=f"station-sim-{uuid.uuid4().hex}",
         sync_period_s=SYNC_PERIOD_S,
         noise_density_ug=request.noise_density_ug,
@@ -182,7 +176,7 @@ def record_schedule(
         interface="virtual", channel=config.channel, options={"receive_own_messages": True}
     )
     with SimBench(config) as bench, open_network(bus) as network:
-        bench.start()
+        unit = bench.unit
         with (
             CanopenDrive(network, config.drive_node) as drive,
             CanopenSensor(network, config.sensor_node) as sensor,
@@ -194,6 +188,13 @@ def record_schedule(
                     f"reports serial {identity.serial_number}, expected {request.serial.number}",
                 )
             microsteps = drive.microsteps_per_fullstep()
+            if microsteps != schedule.microsteps:
+                # Velocities are in microsteps/s: a mismatch would run another speed.
+                raise DeviceStateError(
+                    drive.name,
+                    f"runs {microsteps} microsteps per full step, the schedule was "
+                    f"planned for {schedule.microsteps}",
+                )
             metadata = _metadata(
                 unit,
                 request,
@@ -230,6 +231,7 @@ def record_schedule(
                     notifier.remove_listener(recorder)
                     clock.close()
                 recorder.commit()
+    # Truth is written only for a recording that exists, and never beside it.
     truth = _truth(unit, request, schedule.name, schedule.cycles)
     truth_path = request.truth_path
     truth_path.parent.mkdir(parents=True, exist_ok=True)
