@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -59,13 +58,9 @@ def test_the_optimum_is_deterministic() -> None:
 
 
 @pytest.mark.parametrize("load", [LoadKind.DISK, LoadKind.BELT])
-def test_optimum_with_every_effect_nulls_h1_and_minimises_h2_in_well_under_two_seconds(
-        load: LoadKind) -> None:
+def test_optimum_with_every_effect_nulls_h1_and_minimises_h2(load: LoadKind) -> None:
     unit = derive_unit("SN808", load=load, effects=list(Effect))
-    start = time.perf_counter()
     found = optimal_trims(unit)
-    elapsed = time.perf_counter() - start
-    assert elapsed < 4.0  # ~0.2-0.5 s measured; slack for a loaded machine
     nominal = steady_harmonics(unit, Trims())
     best = steady_harmonics(unit, found)
     assert abs(best[0]) < 1e-3 * abs(nominal[0])
