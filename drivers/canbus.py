@@ -247,6 +247,11 @@ class SteppedSync(SyncClock):
     later SYNC while the gap persists is the missing frame taken as lost. A
     COB-ID silent for ``max_missing_cycles`` cycles in a row means its device
     is gone: ``DeviceTimeout`` names it.
+
+    Within one ``advance`` the next SYNC is sent by the thread that receives
+    the cycle's last frame, not by the caller: a thread hand-off per cycle is
+    the largest cost of a simulated bench, and this saves one of three. The
+    caller only supervises: it restarts the chain after a stall.
     """
 
     def __init__(
@@ -283,8 +288,13 @@ class SteppedSync(SyncClock):
             for k in range(counter_overflow)
         ]
         self._lock = threading.Lock()
-        self._done = threading.Event()
+        self._progress = threading.Condition(self._lock)
         self._sent = 0
+        self._target = 0
+        self._completed = 0
+        self._completed_at_stall = 0
+        self._cycle_started = 0.0
+        self._failure: DeviceError | None = None
         self._outstanding = 0
         self._received = dict.fromkeys(self._devices, 0)
         self._received_at_sync = dict.fromkeys(self._devices, 0)
@@ -318,6 +328,7 @@ class SteppedSync(SyncClock):
 
     def _on_frame(self, can_id: int, data: bytearray, timestamp: float) -> None:
         # Runs on the notifier thread for every TPDO: keep it to integer work.
+        frames: list[can.Message] = []
         with self._lock:
             received = self._received[can_id] + 1
             self._received[can_id] = received
@@ -326,48 +337,112 @@ class SteppedSync(SyncClock):
             if accounted == self._sent:
                 self._outstanding -= 1
                 if self._outstanding == 0:
-                    self._done.set()
+                    self._complete_and_chain(frames)
             elif accounted > self._sent and written_off > 0:
                 # A frame we had given up on arrived late: it was not lost after all.
                 self._written_off[can_id] = written_off - 1
+        for frame in frames:
+            try:
+                self._send(frame)
+            except DeviceError as exc:
+                with self._progress:
+                    self._failure = exc
+                    self._progress.notify_all()
+                return
+
+    def _begin_cycle(self) -> can.Message:
+        """Account for one more SYNC (lock held) and return the frame to send."""
+        frame = self._frames[self._sent % len(self._frames)]
+        self._sent += 1
+        self._cycle_started = time.monotonic()
+        self._received_at_sync.update(self._received)
+        self._outstanding = sum(
+            1
+            for cob_id, received in self._received.items()
+            if received + self._written_off[cob_id] < self._sent
+        )
+        return frame
+
+    def _complete_and_chain(self, frames: list[can.Message]) -> None:
+        """A cycle is complete (lock held): start the next one while the batch lasts.
+
+        The supervising caller is woken only when the batch is over; waking it
+        every cycle would cost the very thread hand-off chaining saves.
+        """
+        self._completed += 1
+        self._chain(frames)
+        if not frames and self._outstanding == 0:
+            self._progress.notify_all()
+
+    def _chain(self, frames: list[can.Message]) -> None:
+        """Start the next cycle (lock held), unless the batch is over.
+
+        A device ahead of the SYNCs (a frame too many) leaves nothing to wait
+        for, so such a cycle completes as soon as it starts.
+        """
+        while self._sent < self._target:
+            frames.append(self._begin_cycle())
+            if self._outstanding:
+                return
+            self._completed += 1
+
+    def _send(self, frame: can.Message) -> None:
+        bus = self._network.bus
+        if bus is None:
+            raise DeviceError(SYNC_PRODUCER, "the network is disconnected")
+        try:
+            with self._network.send_lock:
+                bus.send(frame)
+        except can.CanError as exc:
+            raise DeviceError(SYNC_PRODUCER, f"cannot send SYNC: {exc}") from exc
 
     def advance(self, cycles: int) -> None:
         if cycles < 0:
             raise InputError(f"cannot advance by {cycles} cycles")
         if self._closed:
             raise DeviceError(SYNC_PRODUCER, "the SYNC clock is closed")
-        bus = self._network.bus
-        if bus is None:
+        if self._network.bus is None:
             raise DeviceError(SYNC_PRODUCER, "the network is disconnected")
-        send_lock = self._network.send_lock
-        frames = self._frames
-        overflow = len(frames)
-        for _ in range(cycles):
+        if cycles == 0:
+            return
+        frames: list[can.Message] = []
+        with self._lock:
+            self._failure = None
+            self._target = self._sent + cycles
+            self._chain(frames)
+        while True:
+            for frame in frames:
+                self._send(frame)
+            frames = []
+            if self._await_batch():
+                return
+            # Stalled: a frame did not come within the timeout.
+            self._check_receiver()
+            self._account_for_missing()
             with self._lock:
-                frame = frames[self._sent % overflow]
-                self._sent += 1
-                self._received_at_sync.update(self._received)
-                self._outstanding = sum(
-                    1
-                    for cob_id, received in self._received.items()
-                    if received + self._written_off[cob_id] < self._sent
-                )
-                # A device ahead of the SYNCs (a frame too many) has nothing left to wait for.
-                if self._outstanding:
-                    self._done.clear()
-                else:
-                    self._done.set()
-            try:
-                with send_lock:
-                    bus.send(frame)
-            except can.CanError as exc:
-                raise DeviceError(SYNC_PRODUCER, f"cannot send SYNC: {exc}") from exc
-            if self._done.wait(self._timeout_s):
-                if self._any_consecutive:
-                    self._reset_consecutive()
-            else:
-                self._check_receiver()
-                self._account_for_missing()
+                if self._sent >= self._target:
+                    return
+                self._chain(frames)
+
+    def _await_batch(self) -> bool:
+        """Wait while the chain makes progress; True once the batch is done, False on a stall.
+
+        A stall is the SYNC in flight still unanswered ``timeout_s`` after it
+        was sent: the same deadline per SYNC as if the caller sent each one.
+        """
+        with self._progress:
+            while True:
+                if self._any_consecutive and self._completed != self._completed_at_stall:
+                    # A cycle completed since the last stall: misses are not in a row.
+                    self._clear_consecutive()
+                if self._failure is not None:
+                    raise self._failure
+                if self._sent >= self._target and self._outstanding == 0:
+                    return True
+                remaining = self._cycle_started + self._timeout_s - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._progress.wait(remaining)
 
     def _check_receiver(self) -> None:
         """A dead notifier thread also looks like silent devices: name the real cause."""
@@ -376,15 +451,16 @@ class SteppedSync(SyncClock):
         except Exception as exc:
             raise DeviceError(SYNC_PRODUCER, f"CAN reception has stopped: {exc!r}") from exc
 
-    def _reset_consecutive(self) -> None:
-        with self._lock:
-            for cob_id in self._consecutive:
-                self._consecutive[cob_id] = 0
-            self._any_consecutive = False
+    def _clear_consecutive(self) -> None:
+        """Lock held."""
+        for cob_id in self._consecutive:
+            self._consecutive[cob_id] = 0
+        self._any_consecutive = False
 
     def _account_for_missing(self) -> None:
         gone: list[int] = []
         with self._lock:
+            self._completed_at_stall = self._completed
             for cob_id, received in self._received.items():
                 deficit = self._sent - received - self._written_off[cob_id]
                 if deficit <= 0:

@@ -282,3 +282,27 @@ def test_python_can_configuration_without_interface_is_an_input_error(
     monkeypatch.setenv("HOME", "/nonexistent")
     with pytest.raises(InputError, match="names no usable interface"):
         BusConfig.from_python_can_config(path="/nonexistent/canrc")
+
+
+def test_scattered_late_frames_in_one_long_batch_are_not_taken_for_a_silent_device() -> None:
+    channel = _channel()
+
+    def answer(n: int, counter: int) -> list[int]:
+        # Every tenth SYNC is answered after the deadline: a miss, but never two in a row.
+        if n % 10 == 5:
+            time.sleep(0.03)
+        return [SENSOR_COB]
+
+    with (
+        responder(channel, answer),
+        open_network(BusConfig(channel=channel)) as network,
+        SteppedSync(
+            network,
+            expected_cob_ids={SENSOR_COB: "sensor"},
+            timeout_s=0.02,
+            max_missing_cycles=2,
+        ) as clock,
+    ):
+        clock.advance(60)
+        assert clock.missed == {SENSOR_COB: 6}
+        assert clock.received == {SENSOR_COB: 60}
