@@ -198,7 +198,38 @@ def sim_unit(
         amplitude_mA=amplitude_mA,
         electrical_hz=electrical_hz,
     )
-    _emit(doc, as_json, human=_table(f"simulated unit {doc['serial']}", doc))
+    _emit(doc, as_json, human=_unit_table(doc))
+
+
+def _trims_text(trims: dict[str, float] | None) -> str:
+    if trims is None:
+        return "none stored"
+    return (
+        f"offset A {trims['offset_a_mA']:+.1f} mA, offset B {trims['offset_b_mA']:+.1f} mA, "
+        f"gain A {trims['gain_a']:.0f}, gain B {trims['gain_b']:.0f}"
+    )
+
+
+def _unit_table(doc: dict[str, Any]) -> Table:
+    """What a technician asks of a simulated unit; the whole truth is in ``--json``."""
+    point = doc["operating_point"]
+    amp = doc["unit"]["amplifier"]
+    table = Table(title=f"simulated unit {doc['serial']} ({doc['load']} load)", show_header=False)
+    table.add_column("key", style="bold")
+    table.add_column("value")
+    table.add_row(
+        f"optimal trims at {point['amplitude_mA']:.0f} mA, {point['electrical_hz']:g} Hz",
+        _trims_text(doc["optimal_trims"]),
+    )
+    table.add_row(
+        "amplifier",
+        f"offsets {amp['offset_a_mA']:+.1f} / {amp['offset_b_mA']:+.1f} mA, "
+        f"gain errors {100 * amp['gain_error_a']:+.2f} / {100 * amp['gain_error_b']:+.2f} %",
+    )
+    effects = [e["id"] for e in doc["effects"]]
+    table.add_row("concealed effects", ", ".join(effects) if effects else "none")
+    table.add_row("stored in its EEPROM", _trims_text(doc["stored_trims"]))
+    return table
 
 
 def _table(title: str, doc: dict[str, Any]) -> Table:
