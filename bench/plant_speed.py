@@ -38,8 +38,11 @@ def _x_realtime(load: LoadKind, effects: Iterable[Effect]) -> float:
         start = time.perf_counter()
         for _ in range(per_chunk):
             # A command per SYNC, as the simulated drive builds one.
-            plant.advance(DriveCommand(True, AMPLITUDE_mA, trims, velocity * n * SYNC_PERIOD_S,
-                                       velocity, 0.0, m))
+            plant.advance(
+                DriveCommand(
+                    True, AMPLITUDE_mA, trims, velocity * n * SYNC_PERIOD_S, velocity, 0.0, m
+                )
+            )
             n += 1
         rates.append(per_chunk * SYNC_PERIOD_S / (time.perf_counter() - start))
     return max(rates)
@@ -55,8 +58,15 @@ def measure() -> list[dict[str, object]]:
     records: list[dict[str, object]] = []
     for name, load, effects, target in cases:
         value = _x_realtime(load, effects)
-        records.append({"name": name, "value": value, "unit": "x realtime", "target": target,
-                        "ok": value >= target})
+        records.append(
+            {
+                "name": name,
+                "value": value,
+                "unit": "x realtime",
+                "target": target,
+                "ok": value >= target,
+            }
+        )
     return records
 
 

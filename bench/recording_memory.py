@@ -26,7 +26,9 @@ RUN_S = 60.0
 
 def _child(out: str) -> None:
     # The calibration sweep stretched to a minute of motion.
-    plan = SweepPlan(dwell_s=(RUN_S - 0.6) / 34)
+    short = SweepPlan()
+    holds = 1 + 2 * short.offset_points + short.gain_points  # baseline and the three sweeps
+    plan = SweepPlan(dwell_s=(RUN_S - 2 * short.standstill_s) / holds)
     schedule = calibration_schedule(plan)
     request = SimRecordRequest(
         out=Path(out),

@@ -29,6 +29,7 @@ from drivers.canbus import (
 )
 from drivers.cia301 import TPDO1_COB_BASE
 from drivers.eds import DeviceKind, load_od
+from station.core import SENSOR_RANGES_G
 from station.errors import DeviceStateError, InputError
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,6 @@ class SensorObject(IntEnum):
     SAMPLE_COUNTER = 0x2010
 
 
-VALID_RANGES_G = frozenset({2, 4, 8, 16})
 SAMPLE_FRAME_BYTES = 8
 COUNTER_MODULUS = 1 << 16
 SAMPLE_DTYPE = np.dtype([("counter", "<u2"), ("x", "<i2"), ("y", "<i2"), ("z", "<i2")])
@@ -170,9 +170,9 @@ class CanopenSensor(AccelerationSensor):
         return self._sdo.read_int(SensorObject.RANGE)
 
     def set_range_g(self, range_g: int) -> None:
-        if range_g not in VALID_RANGES_G:
+        if range_g not in SENSOR_RANGES_G:
             raise InputError(
-                f"{self.name}: range {range_g} g is not one of {sorted(VALID_RANGES_G)} g"
+                f"{self.name}: range {range_g} g is not one of {list(SENSOR_RANGES_G)} g"
             )
         with self._lock:
             capturing = self._capturing
@@ -193,10 +193,10 @@ class CanopenSensor(AccelerationSensor):
 
     def _on_sample(self, can_id: int, data: bytearray, timestamp: float) -> None:
         # Notifier thread, once per SYNC: copy the payload and nothing else.
-        if len(data) != SAMPLE_FRAME_BYTES:
-            self._malformed += 1
-            return
         with self._lock:
+            if len(data) != SAMPLE_FRAME_BYTES:
+                self._malformed += 1
+                return
             if self._capturing:
                 self._buffer.append(data)
 

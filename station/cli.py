@@ -145,6 +145,12 @@ def sim_record(
             "--noise-ug", help="Sensor noise density in µg/√Hz (default: the unit's).", min=0.0
         ),
     ] = None,
+    range_g: Annotated[
+        int | None,
+        typer.Option(
+            "--range-g", help="Sensor range in g: 2, 4, 8 or 16 (default: the schedule's)."
+        ),
+    ] = None,
     truth: Annotated[
         Path | None,
         typer.Option("--truth", help="Where to write the truth file (never beside the recording)."),
@@ -162,6 +168,7 @@ def sim_record(
         loss=loss,
         noise_density_ug=noise_ug,
         truth=truth,
+        range_g=range_g,
     )
     request.validate()
     with _progress(f"recording {request.serial}", enabled=not as_json) as update:

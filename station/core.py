@@ -8,6 +8,13 @@ from enum import StrEnum
 GAIN_UNITY = 10000
 """Gains are in 1/10000 (ICD.md): 10000 means 1.0."""
 
+STANDARD_GRAVITY = 9.80665
+"""m/s² per g: the sensor's sensitivity is range·g/32768 (ICD.md §3, 0x2001)."""
+SENSOR_RANGES_G = (2, 4, 8, 16)
+"""Full-scale ranges of the acceleration sensor (ICD.md §3, object 0x2000)."""
+SATURATED_COUNTS = 32767
+"""A saturated sample reads ±32767 (ICD.md §3), never -32768."""
+
 
 class Effect(StrEnum):
     """Physics beyond the paper's model, named as in CLI.md's vocabulary."""

@@ -267,23 +267,37 @@ class SimulatedClock:
     A simulated bench advances only on SYNC, so wall-clock receive times would
     compress a one-minute run into seconds. Frames are stamped at SYNC n's
     instant plus one frame time per frame that followed it, as a bus analyser
-    on a real 1 Mbit/s bench would show them.
+    on a real 1 Mbit/s bench would show them. Frames before the first SYNC
+    (set-up SDO traffic) come one frame time apart, and the first SYNC after
+    them: stamps never go backwards, so ordering by time is ordering by bus.
     """
 
     def __init__(self, sync_period_s: float, start: float | None = None) -> None:
         self._period = sync_period_s
         self._start = time.time() if start is None else start
-        self._syncs = -1
+        self._first_sync: float | None = None
+        self._syncs = 0
         self._frames_since_sync = 0
+        self._last: float | None = None
 
     def stamp(self, msg: can.Message) -> float:
-        if msg.arbitration_id == SYNC_COB_ID and not msg.is_extended_id:
-            self._syncs += 1
-            self._frames_since_sync = 0
-            return self._start + self._syncs * self._period
         self._frames_since_sync += 1
-        offset = min(self._frames_since_sync * _FRAME_SPACING_S, 0.95 * self._period)
-        return self._start + max(self._syncs, 0) * self._period + offset
+        if msg.arbitration_id == SYNC_COB_ID and not msg.is_extended_id:
+            if self._first_sync is None:
+                self._first_sync = self._start + (self._frames_since_sync - 1) * _FRAME_SPACING_S
+            else:
+                self._syncs += 1
+            self._frames_since_sync = 0
+            stamp = self._first_sync + self._syncs * self._period
+        elif self._first_sync is None:
+            stamp = self._start + (self._frames_since_sync - 1) * _FRAME_SPACING_S
+        else:
+            offset = min(self._frames_since_sync * _FRAME_SPACING_S, 0.95 * self._period)
+            stamp = self._first_sync + self._syncs * self._period + offset
+        if self._last is not None:
+            stamp = max(stamp, self._last)
+        self._last = stamp
+        return stamp
 
 
 class RecordingWriter(can.Listener):

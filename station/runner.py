@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from drivers.base import Drive
 from drivers.canbus import SyncClock
 from station.core import Trims
+from station.errors import StationError
 from station.schedules import Hold, Schedule
 
 log = logging.getLogger(__name__)
@@ -78,5 +79,12 @@ def run_schedule(
                 done += step
                 if on_progress is not None:
                     on_progress(done, total, hold)
-    finally:
-        drive.disable()
+    except BaseException:
+        # The first failure is the one to report; a drive that then also
+        # refuses to disable is logged, not allowed to hide it.
+        try:
+            drive.disable()
+        except StationError as exc:
+            log.error("could not disable %s after a failure: %s", drive.name, exc)
+        raise
+    drive.disable()

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
-from station.core import GAIN_UNITY, NOMINAL_TRIMS, Trims
+from station.core import GAIN_UNITY, NOMINAL_TRIMS, SENSOR_RANGES_G, Trims
 
 
 class ScheduleName(StrEnum):
@@ -51,11 +51,19 @@ class Hold:
 
 @dataclass(frozen=True)
 class Schedule:
-    """Holds in order, with the microstep resolution their velocities assume."""
+    """Holds in order, with the microstep resolution their velocities assume and
+    the sensor range the run needs (extreme trims shake a light load hard)."""
 
     name: str
     holds: tuple[Hold, ...]
     microsteps: int = 256
+    sensor_range_g: int = 2
+
+    def __post_init__(self) -> None:
+        if self.sensor_range_g not in SENSOR_RANGES_G:
+            raise ValueError(
+                f"sensor range {self.sensor_range_g} g is not one of {SENSOR_RANGES_G}"
+            )
 
     @property
     def cycles(self) -> int:
@@ -95,6 +103,9 @@ class SweepPlan:
     gain_points: int = 11
     dwell_s: float = 1.0
     standstill_s: float = 0.3
+    # Peaks at the sweep's ends reach 6-18 g on a light disk (the distorted
+    # torque excites the rotor's mode); 8 g keeps most holds unclipped.
+    sensor_range_g: int = 8
 
 
 def calibration_schedule(
@@ -127,7 +138,7 @@ def calibration_schedule(
         trims = replace(NOMINAL_TRIMS, gain_a=gain_a, gain_b=2 * GAIN_UNITY - gain_a)
         holds.append(Hold(Phase.SWEEP_GAIN, v, amp, trims, dwell))
     holds.append(Hold(Phase.STOP, 0, amp, NOMINAL_TRIMS, still))
-    return Schedule(ScheduleName.CALIBRATION.value, tuple(holds), microsteps)
+    return Schedule(ScheduleName.CALIBRATION.value, tuple(holds), microsteps, plan.sensor_range_g)
 
 
 @dataclass(frozen=True)
@@ -147,6 +158,7 @@ class CharacterizationPlan:
     settle_s: float = 0.8
     step_s: float = 0.5
     standstill_s: float = 0.3
+    sensor_range_g: int = 4
 
 
 def characterization_schedule(
@@ -176,7 +188,9 @@ def characterization_schedule(
                 holds.append(Hold(Phase.CONDITION, v, amp, NOMINAL_TRIMS, settle))
                 holds.extend(Hold(phase, v, amp, trims, step) for phase, trims in steps)
     holds.append(Hold(Phase.STOP, 0, top, NOMINAL_TRIMS, still))
-    return Schedule(ScheduleName.CHARACTERIZATION.value, tuple(holds), microsteps)
+    return Schedule(
+        ScheduleName.CHARACTERIZATION.value, tuple(holds), microsteps, plan.sensor_range_g
+    )
 
 
 def named_schedule(

@@ -185,3 +185,34 @@ def test_a_failing_log_writer_is_reported_at_commit_not_on_the_bus_thread(tmp_pa
         with pytest.raises(RecordingError, match="log writer failed"):
             rec.commit()
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("fmt", list(LogFormat))
+def test_set_up_traffic_before_the_first_sync_keeps_time_order(
+    tmp_path: Path, fmt: LogFormat
+) -> None:
+    path = tmp_path / f"run{fmt.value}"
+    sdo = [
+        can.Message(
+            arbitration_id=0x601,
+            data=bytes([0x40, 0x18, 0x10, 4, 0, 0, 0, 0]),
+            is_extended_id=False,
+        ),
+        can.Message(
+            arbitration_id=0x581,
+            data=bytes([0x43, 0x18, 0x10, 4, 123, 0, 0, 0]),
+            is_extended_id=False,
+        ),
+    ]
+    frames = sdo + _frames(20)
+    with RecordingWriter(path, _metadata(), clock=SimulatedClock(0.001, start=5000.0)) as rec:
+        for msg in frames:
+            rec.on_message_received(msg)
+        rec.commit()
+    back = list(can.LogReader(str(path)))
+    stamps = [m.timestamp for m in back]
+    assert stamps == sorted(stamps)
+    # Ordering by time must give the bus order back, SYNC 1 after the set-up frames.
+    by_time = sorted(back, key=lambda m: m.timestamp)
+    assert [m.arbitration_id for m in by_time] == [m.arbitration_id for m in frames]
+    assert max(stamps) - min(stamps) < 0.1

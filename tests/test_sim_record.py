@@ -6,6 +6,7 @@ import json
 import struct
 import sys
 from collections.abc import Iterator
+from dataclasses import replace
 from itertools import pairwise
 from pathlib import Path
 
@@ -293,3 +294,33 @@ def test_sim_record_cli_records_the_calibration_schedule(
     assert out.exists() and out.with_suffix(".json").exists()
     syncs = sum(1 for m in can.LogReader(str(out)) if m.arbitration_id == SYNC)
     assert syncs == doc["cycles"]
+
+
+def test_schedule_sensor_range_sets_the_recorded_lsb(tmp_path: Path) -> None:
+    out = tmp_path / "rec" / "run.blf"
+    out.parent.mkdir()
+    schedule = replace(_short_schedule(), sensor_range_g=16)
+    record_schedule(_request(out, tmp_path), schedule)
+    assert read_metadata(out).sensor_lsb_mps2 == pytest.approx(16 * 9.80665 / 32768, rel=1e-6)
+
+
+def test_unsupported_sensor_range_exits_2(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = _run_cli(
+        [
+            "sim",
+            "record",
+            str(tmp_path / "run.asc"),
+            "--serial",
+            "SN5",
+            "--schedule",
+            "calibration",
+            "--range-g",
+            "3",
+        ],
+        monkeypatch,
+    )
+    assert code == 2
+    assert "--range-g must be one of" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

@@ -22,7 +22,6 @@ from station.physics.motor import (
 )
 from station.physics.optimum import optimal_trims, settle_time_s, steady_harmonics
 from station.physics.params import (
-    STANDARD_GRAVITY,
     AmplifierParams,
     BeltParams,
     CouplingParams,
@@ -35,7 +34,6 @@ from station.physics.params import (
     derive_unit,
 )
 from station.physics.plant import (
-    FULL_SCALE_COUNTS,
     Chain,
     DriveCommand,
     LumpedFriction,
@@ -47,8 +45,6 @@ from station.physics.plant import (
 )
 
 __all__ = [
-    "FULL_SCALE_COUNTS",
-    "STANDARD_GRAVITY",
     "AmplifierParams",
     "Axis",
     "BeltParams",

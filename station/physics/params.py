@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from station.core import Axis, Effect, LoadKind
+from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Axis, Effect, LoadKind
 from station.physics.motor import DetentHarmonic, FluxHarmonic, MotorParams
 from station.serials import parse_serial
 
@@ -45,11 +45,7 @@ __all__ = [
     "derive_unit",
 ]
 
-STANDARD_GRAVITY = 9.80665
-"""m/s² per g (the sensor's unit of range)."""
 
-SENSOR_RANGES_G = (2, 4, 8, 16)
-"""Full-scale ranges the sensor accepts (ICD.md §3, 0x2000)."""
 
 NOMINAL_ELECTRICAL_HZ = 20.0
 """The paper's driving frequency; friction and smoothing are scaled to it."""

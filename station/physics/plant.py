@@ -23,18 +23,20 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
-from station.core import GAIN_UNITY, Axis, Trims
-from station.physics.motor import QUARTER_PITCH_ELECTRICAL, MotorParams, magnetic_stiffness
-from station.physics.params import (
+from station.core import (
+    GAIN_UNITY,
+    SATURATED_COUNTS,
     SENSOR_RANGES_G,
     STANDARD_GRAVITY,
+    Axis,
+    Trims,
+)
+from station.physics.motor import QUARTER_PITCH_ELECTRICAL, MotorParams, magnetic_stiffness
+from station.physics.params import (
     AmplifierParams,
     FrictionParams,
     UnitParams,
 )
-
-FULL_SCALE_COUNTS = 32767
-"""A 16-bit sample saturates at ±32767 (ICD.md §3: −32768 is never sent)."""
 
 _NOISE_BLOCK = 4096
 
@@ -54,6 +56,11 @@ class DriveCommand:
     velocity: float
     acceleration: float
     microsteps_per_fullstep: int
+
+
+STAIRCASE_LAG_MICROSTEPS = 0.5
+"""The drive's current staircase follows the integer position demand: on
+average half a microstep behind the ramp it is cut from."""
 
 
 def commanded_currents_A(x_u: ArrayLike, amplitude_mA: float, trims: Trims,
@@ -429,7 +436,8 @@ class Plant:
         """
         chain = self._chain
         kx = 2.0 * math.pi / (4.0 * command.microsteps_per_fullstep)
-        theta_u = command.position_start * kx / self._nr
+        x_u = (command.position_start - STAIRCASE_LAG_MICROSTEPS) * kx
+        theta_u = x_u / self._nr
         omega_u = command.velocity * kx / self._nr
         n = len(chain.inertias)
         omegas = [omega_u]
@@ -458,8 +466,7 @@ class Plant:
         self._theta = thetas
         self._omega = omegas
         if command.enabled:
-            x = command.position_start * kx
-            i_a, i_b = commanded_currents_A(x, command.amplitude_mA, trims, amp)
+            i_a, i_b = commanded_currents_A(x_u, command.amplitude_mA, trims, amp)
             self._i_a = self._target_a = float(i_a)
             self._i_b = self._target_b = float(i_b)
         else:
@@ -526,7 +533,7 @@ class Plant:
 
     def _quantise(self, values: tuple[float, float, float]) -> tuple[int, int, int]:
         inv = self._inv_lsb
-        full = FULL_SCALE_COUNTS
+        full = SATURATED_COUNTS
         cx = round(values[0] * inv)
         cy = round(values[1] * inv)
         cz = round(values[2] * inv)
@@ -572,10 +579,15 @@ class Plant:
          k1, c1, n1, k2, c2, n2, r_over_h, steps, p00, p01, p10, p11, drifting) = self._const
         enabled = command.enabled
         kx = 2.0 * math.pi / (4.0 * command.microsteps_per_fullstep)
-        # Electrical angle x(t) = x0 + (xv + xa·t)·t over the period.
-        x0 = command.position_start * kx
-        xv = command.velocity * kx
-        xa = 0.5 * command.acceleration * kx
+        # The drive commands its currents from its integer position demand (the
+        # microstep staircase, ICD.md §2). The staircase's steps come at the
+        # microstep rate (20 kHz at 20 Hz electrical), far above the mechanics
+        # and the sensor; sampled at the substep rate they would alias onto low
+        # harmonics, which is not physics. So the currents follow the staircase's
+        # mean: the ramp p(t) = p0 + (pv + pa·t)·t, half a microstep behind.
+        p0 = command.position_start - STAIRCASE_LAG_MICROSTEPS
+        pv = command.velocity
+        pa = 0.5 * command.acceleration
         trims = command.trims
         amp_off_a, amp_off_b, amp_gain_a, amp_gain_b = self._amp_const
         off_a = trims.offset_a_mA * 1e-3 + amp_off_a
@@ -602,7 +614,7 @@ class Plant:
         for t, w0, w1 in steps:
             # Drive: phase currents from the position demand at this instant.
             if enabled:
-                x = x0 + (xv + xa * t) * t
+                x = kx * (p0 + (pv + pa * t) * t)
                 cx = cos(x)
                 sx = sin(x)
                 ua = off_a + fa * cx

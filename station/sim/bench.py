@@ -20,6 +20,7 @@ from types import TracebackType
 import can
 import canopen
 
+from drivers.canbus import DEFAULT_CHANNEL, VIRTUAL_INTERFACE
 from drivers.cia301 import SYNC_COB_ID
 from station.core import Effect, LoadKind
 from station.paths import sim_state_dir
@@ -43,7 +44,7 @@ class SimBenchConfig:
     load: LoadKind = LoadKind.DISK
     effects: frozenset[Effect] | None = None  # None: the unit's own (from its serial)
     seed: int = 0
-    channel: str = "station-sim"  # virtual bus channel
+    channel: str = DEFAULT_CHANNEL  # python-can virtual bus channel
     drive_node: int = 1
     sensor_node: int = 16
     sync_period_s: float = 0.001
@@ -100,7 +101,9 @@ class SimBench:
             raise RuntimeError("a closed bench cannot be started again")
         if self._network is not None:
             return
-        bus = can.Bus(interface="virtual", channel=self.config.channel, receive_own_messages=False)
+        bus = can.Bus(
+            interface=VIRTUAL_INTERFACE, channel=self.config.channel, receive_own_messages=False
+        )
         network = canopen.Network(bus)
         network.NOTIFIER_CYCLE = _NOTIFIER_CYCLE_S
         self._network, self._bus = network, bus

@@ -38,7 +38,12 @@ from canopen.sdo.exceptions import SdoAbortedError
 from drivers.base import DriveState
 from drivers.cia301 import AbortCode, NmtCommand, NmtState, Signature
 from drivers.eds import PERSISTED, DeviceKind, load_od
-from station.core import GAIN_UNITY, NOMINAL_TRIMS, Trims
+from station.core import (
+    GAIN_UNITY,
+    NOMINAL_TRIMS,
+    SENSOR_RANGES_G,
+    Trims,
+)
 from station.errors import DeviceError
 from station.physics.plant import DriveCommand
 from station.sim import trajectory as traj
@@ -116,12 +121,7 @@ COB_ID_INVALID = 0x8000_0000
 _COB_ID_RTR_OFF = 0x4000_0000
 _CAN_ID_MASK = 0x7FF
 
-SENSOR_RANGES_G = (2, 4, 8, 16)
-STANDARD_GRAVITY = 9.80665
-COUNTS_FULL_SCALE = 32768
-SATURATED_COUNTS = 32767
 SAMPLE_COUNTER_MODULO = 1 << 16
-MAX_MICROSTEPS = 256
 
 _STRUCT_CODES = {
     datatypes.INTEGER8: "b",
@@ -803,13 +803,11 @@ class SimSensor(SimNode):
         self.handlers[Obj.SENSOR_RANGE] = self._write_range
 
     def sample(self, counts: tuple[int, int, int]) -> None:
-        """SYNC: take the sample the plant produced for this instant."""
+        """SYNC: take the sample the plant produced for this instant (already
+        quantised and saturated at ±32767 by the sensor model)."""
         values = self.values
         values[Obj.SAMPLE_COUNTER] = (int(values[Obj.SAMPLE_COUNTER]) + 1) % SAMPLE_COUNTER_MODULO
-        x, y, z = counts
-        values[Obj.ACCEL_X] = max(-SATURATED_COUNTS, min(SATURATED_COUNTS, int(x)))
-        values[Obj.ACCEL_Y] = max(-SATURATED_COUNTS, min(SATURATED_COUNTS, int(y)))
-        values[Obj.ACCEL_Z] = max(-SATURATED_COUNTS, min(SATURATED_COUNTS, int(z)))
+        values[Obj.ACCEL_X], values[Obj.ACCEL_Y], values[Obj.ACCEL_Z] = counts
 
     def reset_application(self) -> None:
         for key in self.variables:

@@ -14,15 +14,21 @@ import hashlib
 import os
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Final
 
-from drivers.canbus import BusConfig, SteppedSync, bench_tpdo_cob_ids, open_network
+from drivers.canbus import (
+    VIRTUAL_INTERFACE,
+    BusConfig,
+    SteppedSync,
+    bench_tpdo_cob_ids,
+    open_network,
+)
 from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import CanopenSensor
 from station import __version__
-from station.core import Axis, Effect, LoadKind, Trims
+from station.core import SENSOR_RANGES_G, Axis, Effect, LoadKind, Trims
 from station.errors import DeviceError, DeviceStateError, IdentityMismatch, InputError
 from station.paths import sim_state_dir, truth_dir
 from station.physics.optimum import optimal_trims
@@ -36,7 +42,12 @@ from station.recording import (
     write_json_atomically,
 )
 from station.runner import ProgressCallback, run_schedule
-from station.schedules import Schedule, ScheduleName, SweepPlan, named_schedule
+from station.schedules import (
+    Schedule,
+    ScheduleName,
+    SweepPlan,
+    named_schedule,
+)
 from station.serials import Serial
 from station.sim.bench import SimBench, SimBenchConfig
 from station.sim.eeprom import Eeprom
@@ -58,6 +69,8 @@ class SimRecordRequest:
     loss: float = 0.0
     noise_density_ug: float | None = None
     truth: Path | None = None
+    range_g: int | None = None
+    """Sensor full-scale range; None: the schedule's own choice."""
 
     @property
     def truth_path(self) -> Path:
@@ -70,6 +83,8 @@ class SimRecordRequest:
         """Refuse bad output paths before any bus traffic (exit code 2, nothing written)."""
         log_format_for(self.out)
         _check_writable_file(self.out, "output")
+        if self.range_g is not None and self.range_g not in SENSOR_RANGES_G:
+            raise InputError(f"--range-g must be one of {SENSOR_RANGES_G}, got {self.range_g}")
         if not 0.0 <= self.loss < 1.0:
             raise InputError(f"--loss must be in [0, 1), got {self.loss}")
         truth = self.truth_path
@@ -153,6 +168,8 @@ def record_simulation(
     """Run the named schedule on a simulated bench and record it (ICD.md §5)."""
     request.validate()
     schedule = named_schedule(request.schedule, sync_period_s=SYNC_PERIOD_S)
+    if request.range_g is not None:
+        schedule = replace(schedule, sensor_range_g=request.range_g)
     return record_schedule(request, schedule, on_progress=on_progress)
 
 
@@ -173,7 +190,9 @@ def record_schedule(
     )
     # The recorder listens on the station's own notifier, so it must see our SYNCs too.
     bus = BusConfig(
-        interface="virtual", channel=config.channel, options={"receive_own_messages": True}
+        interface=VIRTUAL_INTERFACE,
+        channel=config.channel,
+        options={"receive_own_messages": True},
     )
     with SimBench(config) as bench, open_network(bus) as network:
         unit = bench.unit
@@ -195,6 +214,7 @@ def record_schedule(
                     f"runs {microsteps} microsteps per full step, the schedule was "
                     f"planned for {schedule.microsteps}",
                 )
+            sensor.set_range_g(schedule.sensor_range_g)
             metadata = _metadata(
                 unit,
                 request,
@@ -204,32 +224,32 @@ def record_schedule(
                 config=config,
                 schedule=schedule.name,
             )
-            clock = SteppedSync(
-                network,
-                period_s=config.sync_period_s,
-                expected_cob_ids=bench_tpdo_cob_ids(
-                    config.drive_node,
-                    config.sensor_node,
-                    drive_name=drive.name,
-                    sensor_name=sensor.name,
-                ),
+            cob_ids = bench_tpdo_cob_ids(
+                config.drive_node,
+                config.sensor_node,
+                drive_name=drive.name,
+                sensor_name=sensor.name,
             )
-            with RecordingWriter(
-                request.out,
-                metadata,
-                clock=SimulatedClock(config.sync_period_s),
-                loss_probability=request.loss,
-                seed=request.seed,
-            ) as recorder:
-                notifier = network.notifier
-                if notifier is None:
-                    raise DeviceError(bus.describe(), "the CAN network is not connected")
+            notifier = network.notifier
+            if notifier is None:
+                raise DeviceError(bus.describe(), "the CAN network is not connected")
+            with (
+                SteppedSync(
+                    network, period_s=config.sync_period_s, expected_cob_ids=cob_ids
+                ) as clock,
+                RecordingWriter(
+                    request.out,
+                    metadata,
+                    clock=SimulatedClock(config.sync_period_s),
+                    loss_probability=request.loss,
+                    seed=request.seed,
+                ) as recorder,
+            ):
                 notifier.add_listener(recorder)
                 try:
                     run_schedule(schedule, drive, clock, on_progress=on_progress)
                 finally:
                     notifier.remove_listener(recorder)
-                    clock.close()
                 recorder.commit()
     # Truth is written only for a recording that exists, and never beside it.
     truth = _truth(unit, request, schedule.name, schedule.cycles)

@@ -8,18 +8,17 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from station.core import GAIN_UNITY, Effect, LoadKind, Trims
+from station.core import GAIN_UNITY, SATURATED_COUNTS, STANDARD_GRAVITY, Effect, LoadKind, Trims
 from station.dsp.demod import harmonic_phasors
 from station.physics.motor import magnetic_stiffness, torque
 from station.physics.params import (
-    STANDARD_GRAVITY,
     AmplifierParams,
     FrictionParams,
     UnitParams,
     derive_unit,
 )
 from station.physics.plant import (
-    FULL_SCALE_COUNTS,
+    STAIRCASE_LAG_MICROSTEPS,
     DriveCommand,
     Plant,
     commanded_currents_A,
@@ -41,8 +40,14 @@ def _ideal_amplifier(unit: UnitParams) -> UnitParams:
 NOMINAL = Trims()
 
 
-def _hold(position: float, *, trims: Trims = NOMINAL, amplitude_mA: float = 1000.0,
-          enabled: bool = True) -> DriveCommand:
+def _field_angle(position: float) -> float:
+    """Electrical angle of the drive's currents for a position demand (microsteps)."""
+    return 2 * math.pi * (position - STAIRCASE_LAG_MICROSTEPS) / (4 * M)
+
+
+def _hold(
+    position: float, *, trims: Trims = NOMINAL, amplitude_mA: float = 1000.0, enabled: bool = True
+) -> DriveCommand:
     return DriveCommand(enabled, amplitude_mA, trims, position, 0.0, 0.0, M)
 
 
@@ -53,8 +58,12 @@ def _run(plant: Plant, command: DriveCommand, cycles: int) -> np.ndarray:
 def _balanced_trims(unit: UnitParams, net_a_mA: float, net_b_mA: float) -> Trims:
     """Trims that leave the given net offsets and equal actual fundamentals."""
     amp = unit.amplifier
-    return Trims(net_a_mA - amp.offset_a_mA, net_b_mA - amp.offset_b_mA,
-                 GAIN_UNITY / (1 + amp.gain_error_a), GAIN_UNITY / (1 + amp.gain_error_b))
+    return Trims(
+        net_a_mA - amp.offset_a_mA,
+        net_b_mA - amp.offset_b_mA,
+        GAIN_UNITY / (1 + amp.gain_error_a),
+        GAIN_UNITY / (1 + amp.gain_error_b),
+    )
 
 
 def _ring_frequency_hz(unit: UnitParams) -> float:
@@ -93,14 +102,17 @@ def test_enable_pulls_the_rotor_to_the_commanded_angle() -> None:
     plant = Plant(unit)
     _run(plant, _hold(0.0, enabled=False), 10)
     _run(plant, _hold(M), 500)  # one full step: 1.8°, a quarter of the electrical period
-    assert plant.rotor_angle_rad == pytest.approx(math.radians(1.8), abs=1e-5)
+    assert plant.rotor_angle_rad == pytest.approx(_field_angle(M) / 50, abs=1e-5)
+    assert plant.rotor_angle_rad == pytest.approx(math.radians(1.8), abs=math.radians(0.01))
 
 
 def test_a_field_jump_beyond_half_a_period_pulls_the_rotor_the_short_way() -> None:
     unit = _ideal_amplifier(derive_unit("SN2", effects=()))
     plant = Plant(unit)
     _run(plant, _hold(3 * M), 500)  # +270° electrical is the same field as −90°
-    assert plant.rotor_angle_rad == pytest.approx(math.radians(-1.8), abs=1e-5)
+    assert plant.rotor_angle_rad == pytest.approx(
+        (_field_angle(3 * M) - 2 * math.pi) / 50, abs=1e-5
+    )
 
 
 def test_a_positive_velocity_turns_the_rotor_forward_at_the_commanded_speed() -> None:
@@ -136,12 +148,12 @@ def test_plant_torque_is_eq1_of_the_motor_model_with_every_effect() -> None:
         theta = plant.rotor_angle_rad
         position = rng.uniform(0, 5000)
         plant.advance(_hold(position, trims=trims, amplitude_mA=800.0))
-        i_a, i_b = commanded_currents_A(2 * math.pi * position / (4 * M), 800.0, trims,
-                                        unit.amplifier)
+        i_a, i_b = commanded_currents_A(_field_angle(position), 800.0, trims, unit.amplifier)
         # Harmonics are tabulated at 8192 points per period: errors of ~1e-8.
         assert plant.phase_currents_A == pytest.approx((float(i_a), float(i_b)), abs=1e-7)
         assert plant.motor_torque_Nm == pytest.approx(
-            float(torque(theta, i_a, i_b, unit.motor)), abs=1e-7)
+            float(torque(theta, i_a, i_b, unit.motor)), abs=1e-7
+        )
 
 
 def test_acceleration_ripple_below_the_natural_frequency_follows_the_magnetic_spring() -> None:
@@ -176,7 +188,8 @@ def test_acceleration_ripple_below_the_natural_frequency_follows_the_magnetic_sp
 def test_rotor_rings_at_the_modal_frequency_and_reluctance_stiffens_it() -> None:
     plain = _without_bearing_coulomb(_ideal_amplifier(derive_unit("SN123", effects=())))
     stiff = _without_bearing_coulomb(
-        _ideal_amplifier(derive_unit("SN123", effects=[Effect.RELUCTANCE_TORQUE])))
+        _ideal_amplifier(derive_unit("SN123", effects=[Effect.RELUCTANCE_TORQUE]))
+    )
     for unit in (plain, stiff):
         mode = modal_analysis(unit, 1000.0)[0]
         damped = mode.frequency_hz * math.sqrt(1 - mode.damping_ratio**2)
@@ -208,8 +221,9 @@ def test_counts_are_the_reading_rounded_to_the_lsb() -> None:
     velocity = 20.0 * 4 * M
     plant.place_on_trajectory(DriveCommand(True, 1000.0, Trims(), 0.0, velocity, 0.0, M))
     for n in range(300):
-        counts = plant.advance(DriveCommand(True, 1000.0, Trims(), velocity * n * T, velocity,
-                                            0.0, M))
+        counts = plant.advance(
+            DriveCommand(True, 1000.0, Trims(), velocity * n * T, velocity, 0.0, M)
+        )
         reading = plant.sensor_reading_mps2
         for c, r in zip(counts, reading, strict=True):
             assert c == round(r / plant.sensor_lsb_mps2())
@@ -224,8 +238,8 @@ def test_sensor_saturates_at_plus_minus_32767() -> None:
     plant = Plant(derive_unit("SN11", effects=()))
     _run(plant, _hold(0.0, enabled=False), 5)
     counts = _run(plant, _hold(128.0), 100)  # half a full step: a violent pull-in
-    assert counts[:, 0].max() == FULL_SCALE_COUNTS
-    assert counts[:, 0].min() == -FULL_SCALE_COUNTS
+    assert counts[:, 0].max() == SATURATED_COUNTS
+    assert counts[:, 0].min() == -SATURATED_COUNTS
     peak = max(abs(r) for r in _readings_during_pull_in())
     assert peak > 2 * 9.80665 * 32767 / 32768
 
@@ -275,10 +289,10 @@ def test_current_loop_lag_is_a_first_order_response() -> None:
         if n >= 100:
             currents.append(plant.phase_currents_A)
             t_last = (n + 1 - 1 / 8) * T  # the last substep of the period
-            angles.append(2 * math.pi * velocity * t_last / (4 * M))
+            angles.append(_field_angle(velocity * t_last))
     i = np.array(currents)
-    h_a, = harmonic_phasors(i[:, 0], np.array(angles), [1])
-    h_b, = harmonic_phasors(i[:, 1], np.array(angles) - math.pi / 2, [1])
+    (h_a,) = harmonic_phasors(i[:, 0], np.array(angles), [1])
+    (h_b,) = harmonic_phasors(i[:, 1], np.array(angles) - math.pi / 2, [1])
     # The loop is exact for a target linear between substeps; a sinusoid's
     # linear interpolant keeps sinc²(ωh/2) of its fundamental, with no delay.
     half_step = math.pi * f * T / 8
@@ -320,6 +334,12 @@ def test_the_same_commands_give_bit_identical_runs() -> None:
     for _ in range(2):
         plant = Plant(unit, seed=5)
         velocity = 20.0 * 4 * M
-        runs.append([plant.advance(DriveCommand(True, 900.0, Trims(), velocity * n * T,
-                                                velocity, 0.0, M)) for n in range(300)])
+        runs.append(
+            [
+                plant.advance(
+                    DriveCommand(True, 900.0, Trims(), velocity * n * T, velocity, 0.0, M)
+                )
+                for n in range(300)
+            ]
+        )
     assert runs[0] == runs[1]
