@@ -241,7 +241,14 @@ class CanopenDrive(Drive):
     # -- trims -----------------------------------------------------------------
 
     def write_trims(self, trims: Trims) -> None:
-        """Write all four trims, or none: a refused value rolls back those already written."""
+        """Write all four trims, or none: a refused value rolls back those already written.
+
+        "None" is about what the drive holds afterwards (and could store), not
+        about time: each SDO takes effect at the next SYNC (ICD.md §2), so with
+        a free-running SYNC a few samples may carry a mix of old and new values.
+        Analysis therefore segments by the trims in effect (TPDO2), never by
+        when the station wrote them.
+        """
         raw = (trims.offset_a_mA, trims.offset_b_mA, trims.gain_a, trims.gain_b)
         if not all(math.isfinite(value) for value in raw):
             raise InputError(f"{self.name}: trims must be finite numbers, not {trims}")

@@ -719,8 +719,9 @@ class SimDrive(SimNode):
         self._pending = True
 
     def _write_microsteps(self, value: int) -> None:
-        if value & (value - 1):
-            raise SdoAbortedError(AbortCode.VALUE_RANGE)
+        # Any resolution in the EDS range (1..256): real drives use 200 or 250
+        # too, and the plant follows the unwrapped position, so nothing here
+        # needs a power of two (a reader must unwrap 0x6062 before "mod 4m").
         if self.state is DriveState.OPERATION_ENABLED:
             # The electrical angle would jump under a running motor.
             raise SdoAbortedError(AbortCode.DEVICE_STATE)
@@ -769,9 +770,6 @@ class SimDrive(SimNode):
         for key in (Obj.OFFSET_A, Obj.OFFSET_B):
             if 2 * abs(image.get(key, 0)) > rated:
                 problems.append(f"{key_text(key)} = {image[key]} exceeds half the rated current")
-        microsteps = image.get(Obj.MICROSTEPS, 1)
-        if microsteps & (microsteps - 1):
-            problems.append(f"{key_text(Obj.MICROSTEPS)} = {microsteps} is not a power of two")
         return problems
 
 

@@ -98,7 +98,7 @@ def test_segmented_transfers_work_both_ways(bench_station: tuple[SimBench, Stati
     ("index", "sub", "value"),
     [
         (0x2100, 1, 501), (0x2100, 1, -501), (0x2100, 2, 501), (0x2100, 3, 4999),
-        (0x2100, 4, 15001), (0x2103, 0, 1001), (0x6060, 0, 1), (0x2102, 0, 3),
+        (0x2100, 4, 15001), (0x2103, 0, 1001), (0x6060, 0, 1), (0x2102, 0, 0),
         (0x2102, 0, 512), (0x1019, 0, 1), (0x6083, 0, 0), (0x1801, 1, 0x282),
     ],
 )  # fmt: skip
@@ -177,6 +177,8 @@ def test_microsteps_cannot_change_under_a_running_motor(
     sdo[0x6040].raw = 0x07
     sdo[0x2102].raw = 128
     assert sdo[0x2102].raw == 128
+    sdo[0x2102].raw = 200  # not a power of two: real drives use such resolutions
+    assert sdo[0x2102].raw == 200
 
 
 def test_statusword_follows_the_cia402_sequence(bench_station: tuple[SimBench, Station]) -> None:
