@@ -27,14 +27,38 @@ from station.schedules import velocity_for
 from station.sim.bench import SimBench, SimBenchConfig
 
 TARGET_X_REALTIME = 3.0
+SYNC_PERIOD_S = 0.001
 
 
-def measure(cycles: int = 5000) -> list[BenchRecord]:
+def measure(cycles: int = 4000, repeats: int = 3) -> list[BenchRecord]:
+    """Median of ``repeats`` runs: one run on a shared 2-core VM swings by ±20 %."""
+    rates = sorted(_cycles_per_second(cycles) for _ in range(repeats))
+    per_second = rates[len(rates) // 2]
+    return [
+        BenchRecord(
+            "bench_sync_cycles_per_s",
+            per_second,
+            "cycles/s",
+            TARGET_X_REALTIME / SYNC_PERIOD_S,
+            Goal.AT_LEAST,
+        ),
+        BenchRecord(
+            "bench_speed_vs_realtime",
+            per_second * SYNC_PERIOD_S,
+            "x realtime",
+            TARGET_X_REALTIME,
+            Goal.AT_LEAST,
+        ),
+    ]
+
+
+def _cycles_per_second(cycles: int) -> float:
     config = SimBenchConfig(
         serial="SN4242",
         load=LoadKind.DISK,
         effects=frozenset(),
         channel=f"bench-{uuid.uuid4().hex}",
+        sync_period_s=SYNC_PERIOD_S,
     )
     bus = BusConfig(interface=VIRTUAL_INTERFACE, channel=config.channel)
     cob_ids = bench_tpdo_cob_ids(config.drive_node, config.sensor_node)
@@ -53,20 +77,4 @@ def measure(cycles: int = 5000) -> list[BenchRecord]:
         start = time.perf_counter()
         clock.advance(cycles)
         elapsed = time.perf_counter() - start
-    per_second = cycles / elapsed
-    return [
-        BenchRecord(
-            "bench_sync_cycles_per_s",
-            per_second,
-            "cycles/s",
-            TARGET_X_REALTIME / config.sync_period_s,
-            Goal.AT_LEAST,
-        ),
-        BenchRecord(
-            "bench_speed_vs_realtime",
-            per_second * config.sync_period_s,
-            "x realtime",
-            TARGET_X_REALTIME,
-            Goal.AT_LEAST,
-        ),
-    ]
+    return cycles / elapsed
