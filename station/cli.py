@@ -170,7 +170,6 @@ def sim_record(
         truth=truth,
         range_g=range_g,
     )
-    request.validate()
     with _progress(f"recording {request.serial}", enabled=not as_json) as update:
         result = record_simulation(request, on_progress=update)
     doc = result.as_dict()

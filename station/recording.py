@@ -255,8 +255,8 @@ class _BatchedMF4Writer(MF4Writer):
         super().stop()
 
 
-def _open_log_writer(path: Path) -> can.Listener:
-    if log_format_for(path) is LogFormat.MF4:
+def _open_log_writer(path: Path, log_format: LogFormat) -> can.Listener:
+    if log_format is LogFormat.MF4:
         return _BatchedMF4Writer(str(path))
     return can.Logger(str(path))
 
@@ -318,7 +318,7 @@ class RecordingWriter(can.Listener):
         loss_probability: float = 0.0,
         seed: int = 0,
     ) -> None:
-        log_format_for(path)
+        log_format = log_format_for(path)
         if not 0.0 <= loss_probability < 1.0:
             raise InputError(f"frame loss probability must be in [0, 1), got {loss_probability}")
         self.path = path
@@ -330,7 +330,7 @@ class RecordingWriter(can.Listener):
         self._draw_index = 0
         self._tmp = path.with_name(f".{path.stem}.{os.getpid()}.partial{path.suffix}")
         self._lock = threading.Lock()
-        self._writer: can.Listener | None = _open_log_writer(self._tmp)
+        self._writer: can.Listener | None = _open_log_writer(self._tmp, log_format)
         self.frames_seen = 0
         self.frames_written = 0
         self._failure: Exception | None = None

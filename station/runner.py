@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from drivers.base import Drive
 from drivers.canbus import SyncClock
@@ -63,11 +63,7 @@ def run_schedule(
         if schedule.holds:
             # Amplitude and trims go in before the phases are energised, so the
             # first samples already show the schedule's excitation.
-            first = schedule.holds[0]
-            drive.set_amplitude(first.amplitude_mA)
-            drive.write_trims(first.trims)
-            drive.set_velocity(0)
-            applied = _Applied(velocity=0, amplitude_mA=first.amplitude_mA, trims=first.trims)
+            _apply(drive, replace(schedule.holds[0], velocity=0), applied)
         drive.enable()
         for hold in schedule.holds:
             _apply(drive, hold, applied)

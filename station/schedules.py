@@ -126,13 +126,14 @@ def calibration_schedule(
         Hold(Phase.STANDSTILL, 0, amp, NOMINAL_TRIMS, still),
         Hold(Phase.BASELINE, v, amp, NOMINAL_TRIMS, dwell),
     ]
-    for offset in _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points):
-        holds.append(
-            Hold(Phase.SWEEP_OFFSET_A, v, amp, replace(NOMINAL_TRIMS, offset_a_mA=offset), dwell)
-        )
-    for offset in _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points):
-        holds.append(
-            Hold(Phase.SWEEP_OFFSET_B, v, amp, replace(NOMINAL_TRIMS, offset_b_mA=offset), dwell)
+    offsets = _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points)
+    for phase, field in (
+        (Phase.SWEEP_OFFSET_A, "offset_a_mA"),
+        (Phase.SWEEP_OFFSET_B, "offset_b_mA"),
+    ):
+        holds.extend(
+            Hold(phase, v, amp, replace(NOMINAL_TRIMS, **{field: offset}), dwell)
+            for offset in offsets
         )
     for gain_a in _linspace_int(plan.gain_low, plan.gain_high, plan.gain_points):
         trims = replace(NOMINAL_TRIMS, gain_a=gain_a, gain_b=2 * GAIN_UNITY - gain_a)

@@ -99,7 +99,7 @@ class SimRecordRequest:
 def _check_writable_file(path: Path, what: str) -> None:
     if path.exists() and path.is_dir():
         raise InputError(f"{what} {path} is a directory")
-    parent = path.parent if str(path.parent) else Path(".")
+    parent = path.parent
     if not parent.is_dir():
         raise InputError(f"{what} directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
@@ -170,14 +170,23 @@ def record_simulation(
     schedule = named_schedule(request.schedule, sync_period_s=SYNC_PERIOD_S)
     if request.range_g is not None:
         schedule = replace(schedule, sensor_range_g=request.range_g)
-    return record_schedule(request, schedule, on_progress=on_progress)
+    return _record(request, schedule, on_progress)
 
 
 def record_schedule(
     request: SimRecordRequest, schedule: Schedule, *, on_progress: ProgressCallback | None = None
 ) -> SimRecordResult:
-    """Record any schedule on a simulated bench (benchmarks and tests use their own)."""
+    """Record any schedule on a simulated bench (benchmarks and tests use their own).
+
+    Validation comes first, before any bus traffic: bad input writes nothing.
+    """
     request.validate()
+    return _record(request, schedule, on_progress)
+
+
+def _record(
+    request: SimRecordRequest, schedule: Schedule, on_progress: ProgressCallback | None
+) -> SimRecordResult:
     config = SimBenchConfig(
         serial=request.serial.label,
         load=request.load,
