@@ -17,12 +17,16 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
+from rich.console import Console, Group
 from rich.logging import RichHandler
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from rich.text import Text
 
 from station import __version__
+from station.analysis.pipeline import AnalysisOptions, MethodChoice, analyze
+from station.analysis.reader import read_recording
+from station.analysis.report import analysis_dict
 from station.core import Effect, LoadKind
 from station.errors import ExitCode, InputError, StationError
 from station.schedules import Hold, ScheduleName
@@ -246,6 +250,72 @@ def _table(title: str, doc: dict[str, Any]) -> Table:
         text = json.dumps(value) if isinstance(value, dict | list) else str(value)
         table.add_row(key, text)
     return table
+
+
+@app.command("analyze")
+def analyze_command(
+    recording: Annotated[
+        Path, typer.Argument(help="CAN log of a run (ICD.md §5), its .json metadata beside it.")
+    ],
+    method: Annotated[
+        MethodChoice,
+        typer.Option(
+            "--method",
+            help="auto: phase-coherent when the data allow, else the paper's parabolas.",
+        ),
+    ] = MethodChoice.AUTO,
+    settle_periods: Annotated[
+        float | None,
+        typer.Option(
+            "--settle-periods",
+            help="Electrical periods dropped after each change (default: judged from the data).",
+            min=0.0,
+        ),
+    ] = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Estimate the trims from a recording, off the bench."""
+    with _progress(f"analysing {recording.name}", enabled=not as_json):
+        timeline = read_recording(recording)
+        result = analyze(timeline, AnalysisOptions(method=method, settle_periods=settle_periods))
+    doc = analysis_dict(result, str(recording))
+    _emit(doc, as_json, human=_analysis_tables(doc))
+
+
+def _analysis_tables(doc: dict[str, Any]) -> Group:
+    """Trims with uncertainties, then one row per trim point, as a motion engineer reads them."""
+    head = Table(
+        title=f"{doc['serial']}: trims by the {doc['method']} method from {doc['segments']} "
+        f"segments at {doc['condition']['amplitude_mA']} mA, "
+        f"{doc['condition']['electrical_hz']:.2f} Hz"
+    )
+    head.add_column("trim")
+    head.add_column("value", justify="right")
+    head.add_column("± (1σ)", justify="right")
+    for key, value in doc["trims"].items():
+        head.add_row(key, f"{value:.1f}", f"{doc['uncertainty'][key]:.1f}")
+    points = Table(title="trim points (|H| in m/s², phase in degrees)")
+    for column in ("offset A", "offset B", "gain A", "gain B", "|H1|", "∠H1", "|H2|", "∠H2",
+                   "lost", "clipped"):
+        points.add_column(column, justify="right")
+    for p in doc["conditions"][0]["points"]:
+        t = p["trims"]
+        points.add_row(
+            f"{t['offset_a_mA']:.0f}", f"{t['offset_b_mA']:.0f}", f"{t['gain_a']:.0f}",
+            f"{t['gain_b']:.0f}", f"{p['h1']['magnitude']:.4f}", f"{p['h1']['phase_deg']:.0f}",
+            f"{p['h2']['magnitude']:.4f}", f"{p['h2']['phase_deg']:.0f}",
+            str(p["samples_missing"]), str(p["samples_saturated"]),
+        )
+    notes = [Text(f"warning: {w}", style="yellow") for w in doc["warnings"]]
+    losses = doc["losses"]
+    notes.append(
+        Text(
+            f"{doc['samples']} samples; {losses['syncs_missing']} SYNC and "
+            f"{losses['sensor_samples_lost']} sensor samples missing, "
+            f"{losses['saturated_samples']} clipped; {len(doc['rejected'])} stretches rejected"
+        )
+    )
+    return Group(head, points, *notes)
 
 
 @app.command("version")

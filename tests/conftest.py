@@ -6,6 +6,12 @@ falls over after a shift; so a test that leaves one behind fails here.
 
 from __future__ import annotations
 
+import os
+
+# Small matrices on a busy 2-core machine: OpenBLAS's threads cost 30x more than they
+# save. Set before numpy is first imported (pytest imports conftest first).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import threading
 import time
 from collections.abc import Iterator

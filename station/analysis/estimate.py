@@ -1,0 +1,630 @@
+"""Optimal trims from harmonic phasors measured at several trim points.
+
+Two estimators, both pure functions of the points:
+
+- the paper's (section 3): a weighted least-squares parabola of |H1|²
+  against each offset and of |H2|² against the gain split, the trim at each
+  vertex;
+- a phase-coherent one: H1 and H2 are complex and, near the optimum, affine
+  in the trims (eq. 16 is linear in the offsets and in the amplitude
+  imbalance), so the affine maps are fitted from whatever points exist and
+  solved for the trims that null them. It uses the phase the paper throws
+  away, so it needs no sweep through the minimum and no separable design.
+
+Real sweeps go far enough for the response to turn nonlinear (a large rotor
+oscillation, a clipped sensor). Both estimators therefore fit only the
+largest neighbourhood of the optimum that the model explains within the
+noise, found iteratively, and inflate their uncertainty by the Birge ratio
+when even the smallest neighbourhood does not fit.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import stats
+
+from station.core import GAIN_UNITY, Trims
+
+
+class Method(StrEnum):
+    """How the trims were estimated (reported with every result)."""
+
+    PAPER = "paper"
+    COHERENT = "coherent"
+
+
+class TrimAxis(StrEnum):
+    """The three quantities a calibration sets; the gain split keeps the gain sum."""
+
+    OFFSET_A = "offset_a_mA"
+    OFFSET_B = "offset_b_mA"
+    GAIN_SPLIT = "gain_split"
+
+    @property
+    def harmonic(self) -> int:
+        """The order this trim acts on (offsets: 1st, imbalance: 2nd)."""
+        return 2 if self is TrimAxis.GAIN_SPLIT else 1
+
+
+AXES: tuple[TrimAxis, ...] = tuple(TrimAxis)
+
+CONSISTENT_P = 0.01
+"""A neighbourhood is accepted when its χ² is this probable or more."""
+
+_MAX_REFITS = 6
+
+_OFFSET_HELD_TOLERANCE_mA = 10.0
+"""How far from the offsets' optimum a gain sweep may run before its split is suspect."""
+
+
+@dataclass(frozen=True)
+class TrimPoint:
+    """One steady segment, reduced to what the estimators need."""
+
+    trims: Trims
+    h1: complex
+    h1_var: float
+    h2: complex
+    h2_var: float
+
+    def coordinate(self, axis: TrimAxis) -> float:
+        t = self.trims
+        if axis is TrimAxis.OFFSET_A:
+            return t.offset_a_mA
+        if axis is TrimAxis.OFFSET_B:
+            return t.offset_b_mA
+        return (t.gain_a - t.gain_b) / 2.0
+
+    def h(self, order: int) -> complex:
+        return self.h1 if order == 1 else self.h2
+
+    def var(self, order: int) -> float:
+        return self.h1_var if order == 1 else self.h2_var
+
+    @property
+    def ripple(self) -> float:
+        """How hard the rotor shakes here: what drives the response nonlinear."""
+        return math.hypot(abs(self.h1), abs(self.h2))
+
+
+@dataclass(frozen=True)
+class TrimSigma:
+    """Standard uncertainties of the four trims (same units)."""
+
+    offset_a_mA: float
+    offset_b_mA: float
+    gain_a: float
+    gain_b: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {
+            "offset_a_mA": self.offset_a_mA,
+            "offset_b_mA": self.offset_b_mA,
+            "gain_a": self.gain_a,
+            "gain_b": self.gain_b,
+        }
+
+
+class Unsupported(Exception):
+    """The data cannot support an estimate; the message says why."""
+
+
+@dataclass(frozen=True)
+class FitQuality:
+    """How well a fit explains the points it used."""
+
+    r_squared: float
+    chi2_reduced: float  # 1 means the residuals are as large as the noise says
+    dof: int
+    points_used: int
+    points_available: int
+    residuals: tuple[float, ...]  # normalised (residual / sigma), per point used
+
+
+@dataclass(frozen=True)
+class ParabolaFit:
+    """y = floor + curvature·(x − vertex)², y being |H_k|² in (m/s²)²."""
+
+    axis: TrimAxis
+    order: int
+    vertex: float
+    vertex_sigma: float
+    curvature: float
+    floor: float
+    swept: tuple[float, float]
+    x: tuple[float, ...]  # every point of the sweep
+    y: tuple[float, ...]
+    used: tuple[bool, ...]
+    quality: FitQuality
+
+    def curve(self, points: int = 41) -> tuple[tuple[float, float], ...]:
+        """The fitted parabola sampled across the swept range, for plots."""
+        xs = np.linspace(self.swept[0], self.swept[1], points)
+        ys = self.floor + self.curvature * (xs - self.vertex) ** 2
+        return tuple((float(a), float(b)) for a, b in zip(xs, ys, strict=True))
+
+
+@dataclass(frozen=True)
+class AffineFit:
+    """H_k = intercept + Σ coefficient·(term − centre) over ``terms``."""
+
+    order: int
+    terms: tuple[Term, ...]
+    centre: tuple[complex, ...]
+    intercept: complex
+    coefficients: tuple[complex, ...]
+    quality: FitQuality
+
+
+@dataclass(frozen=True)
+class TrimEstimate:
+    method: Method
+    trims: Trims
+    sigma: TrimSigma
+    parabolas: tuple[ParabolaFit, ...] = ()
+    affine: tuple[AffineFit, ...] = ()
+    warnings: tuple[str, ...] = field(default_factory=tuple)
+
+
+def _split_to_gains(split: float, gain_sum: float) -> tuple[float, float]:
+    return gain_sum / 2.0 + split, gain_sum / 2.0 - split
+
+
+def _gain_sum(points: Sequence[TrimPoint]) -> float:
+    sums = {round(p.trims.gain_a + p.trims.gain_b) for p in points}
+    return float(sums.pop()) if len(sums) == 1 else float(2 * GAIN_UNITY)
+
+
+def _quality(
+    residual: NDArray[np.float64], sigma: NDArray[np.float64], y: NDArray[np.float64],
+    weights: NDArray[np.float64], *, params: int, available: int, per_point: int = 1,
+) -> FitQuality:
+    """Fit figures; ``per_point`` real equations per point (2 for a complex phasor)."""
+    dof = residual.size - params
+    chi2 = float(np.sum((residual / sigma) ** 2))
+    mean = float(np.sum(weights * y) / np.sum(weights))
+    total = float(np.sum(weights * (y - mean) ** 2))
+    r2 = 1.0 - float(np.sum(weights * residual**2)) / total if total > 0 else 1.0
+    return FitQuality(
+        r_squared=r2,
+        chi2_reduced=chi2 / dof if dof > 0 else float("nan"),
+        dof=dof,
+        points_used=int(residual.size) // per_point,
+        points_available=available,
+        residuals=tuple(float(r) for r in residual / sigma),
+    )
+
+
+def _consistent(q: FitQuality) -> bool:
+    if q.dof <= 0:
+        return True
+    return float(stats.chi2.sf(q.chi2_reduced * q.dof, q.dof)) >= CONSISTENT_P
+
+
+def _birge(q: FitQuality) -> float:
+    """Scale for standard errors when the residuals exceed what the noise explains."""
+    if q.dof <= 0 or not math.isfinite(q.chi2_reduced):
+        return 1.0
+    return max(1.0, math.sqrt(q.chi2_reduced))
+
+
+# --- the paper's parabolas -------------------------------------------------------------------
+
+
+def sweep_along(points: Sequence[TrimPoint], axis: TrimAxis) -> list[TrimPoint]:
+    """The largest set of points that vary only ``axis`` (the others held fixed)."""
+    others = [a for a in AXES if a is not axis]
+    groups: dict[tuple[float, ...], list[TrimPoint]] = {}
+    for p in points:
+        groups.setdefault(tuple(round(p.coordinate(a), 3) for a in others), []).append(p)
+    best = max(groups.values(), key=lambda g: len({p.coordinate(axis) for p in g}), default=[])
+    return best
+
+
+@dataclass(frozen=True)
+class _Parabola:
+    coef: NDArray[np.float64]  # c0 + c1·u + c2·u², u = x − centre
+    cov: NDArray[np.float64]
+    centre: float
+    quality: FitQuality
+
+    @property
+    def vertex(self) -> float:
+        return float(self.centre - self.coef[1] / (2.0 * self.coef[2]))
+
+    def vertex_sigma(self) -> float:
+        c1, c2 = self.coef[1], self.coef[2]
+        grad = np.array([0.0, -1.0 / (2 * c2), c1 / (2 * c2**2)])
+        return float(math.sqrt(max(0.0, grad @ self.cov @ grad))) * _birge(self.quality)
+
+
+def _fit_parabola(x: NDArray[np.float64], y: NDArray[np.float64], sigma: NDArray[np.float64],
+                  available: int) -> _Parabola:
+    centre = float(np.mean(x))
+    u = x - centre
+    design = np.column_stack([np.ones_like(u), u, u * u])
+    w = 1.0 / sigma**2
+    normal = design.T @ (design * w[:, None])
+    cov = np.linalg.inv(normal)
+    coef = cov @ (design.T @ (w * y))
+    residual = y - design @ coef
+    quality = _quality(residual, sigma, y, w, params=3, available=available)
+    return _Parabola(coef, np.asarray(cov, dtype=np.float64), centre, quality)
+
+
+def _power(points: Sequence[TrimPoint], order: int) -> tuple[NDArray[np.float64], ...]:
+    """|H|² with its noise bias removed, and its standard deviation.
+
+    For H = μ + n with E|n|² = v: E|H|² = |μ|² + v and var|H|² = 2|μ|²v + v².
+    """
+    h = np.array([abs(p.h(order)) ** 2 for p in points])
+    v = np.array([p.var(order) for p in points])
+    y = h - v
+    sigma = np.sqrt(2.0 * np.maximum(y, 0.0) * v + v * v)
+    return y, np.maximum(sigma, 1e-12)
+
+
+def _nearest_windows(
+    x: NDArray[np.float64], fit: Callable[[NDArray[np.intp]], _Parabola], minimum: int
+) -> tuple[NDArray[np.intp], _Parabola, bool]:
+    """Largest window of points nearest the vertex that a parabola explains."""
+    order = np.arange(x.size)
+    current = fit(order)
+    chosen, accepted = order, _consistent(current.quality)
+    for _ in range(_MAX_REFITS):
+        if current.coef[2] <= 0:
+            break
+        by_distance = np.argsort(np.abs(x - current.vertex), kind="stable")
+        pick: tuple[NDArray[np.intp], _Parabola, bool] | None = None
+        for n in range(x.size, minimum - 1, -1):
+            idx = np.sort(by_distance[:n])
+            candidate = fit(idx)
+            if candidate.coef[2] > 0 and _consistent(candidate.quality):
+                pick = (idx, candidate, True)
+                break
+        if pick is None:
+            idx = np.sort(by_distance[:minimum])
+            pick = (idx, fit(idx), False)
+        if np.array_equal(pick[0], chosen):
+            current, accepted = pick[1], pick[2]
+            break
+        chosen, current, accepted = pick
+    return chosen, current, accepted
+
+
+def fit_parabola(points: Sequence[TrimPoint], axis: TrimAxis) -> tuple[ParabolaFit, list[str]]:
+    """The paper's estimate along one axis, from its sweep; raises Unsupported."""
+    sweep = sweep_along(points, axis)
+    order = axis.harmonic
+    x = np.array([p.coordinate(axis) for p in sweep])
+    distinct = np.unique(x).size
+    if distinct < 3:
+        raise Unsupported(
+            f"{axis.value}: too few points ({distinct} distinct values; a parabola needs 3)"
+        )
+    y, sigma = _power(sweep, order)
+
+    def fit(idx: NDArray[np.intp]) -> _Parabola:
+        return _fit_parabola(x[idx], y[idx], sigma[idx], x.size)
+
+    minimum = min(x.size, 5 if distinct >= 5 else distinct)
+    idx, best, accepted = _nearest_windows(x, fit, minimum)
+    warnings: list[str] = []
+    c2, c2_sigma = best.coef[2], math.sqrt(best.cov[2, 2]) * _birge(best.quality)
+    if c2 <= 2.0 * c2_sigma:
+        raise Unsupported(
+            f"{axis.value}: flat parabola (curvature {c2:.3g} ± {c2_sigma:.2g} is not "
+            "significantly positive)"
+        )
+    lo, hi = float(x.min()), float(x.max())
+    vertex = best.vertex
+    if not lo <= vertex <= hi:
+        raise Unsupported(
+            f"{axis.value}: the minimum {vertex:.1f} lies outside the swept range "
+            f"[{lo:g}, {hi:g}]"
+        )
+    if not accepted:
+        warnings.append(
+            f"{axis.value}: even the {idx.size} points nearest the minimum fit worse than "
+            f"the noise (reduced chi² {best.quality.chi2_reduced:.1f}); uncertainty inflated"
+        )
+    used = np.zeros(x.size, dtype=bool)
+    used[idx] = True
+    c0 = best.coef[0] - best.coef[1] ** 2 / (4 * c2)
+    return (
+        ParabolaFit(
+            axis=axis,
+            order=order,
+            vertex=vertex,
+            vertex_sigma=best.vertex_sigma(),
+            curvature=float(c2),
+            floor=float(c0),
+            swept=(lo, hi),
+            x=tuple(float(v) for v in x),
+            y=tuple(float(v) for v in y),
+            used=tuple(bool(u) for u in used),
+            quality=best.quality,
+        ),
+        warnings,
+    )
+
+
+def paper_estimate(points: Sequence[TrimPoint]) -> TrimEstimate:
+    """The paper's method: one parabola per axis, trims at the vertices."""
+    fits: list[ParabolaFit] = []
+    warnings: list[str] = []
+    for axis in AXES:
+        fit, notes = fit_parabola(points, axis)
+        fits.append(fit)
+        warnings.extend(notes)
+    a, b, g = fits
+    gain_sweep = sweep_along(points, TrimAxis.GAIN_SPLIT)
+    gain_a, gain_b = _split_to_gains(g.vertex, _gain_sum(gain_sweep))
+    # The paper sweeps the split with the offsets already at their optimum; the 2nd
+    # harmonic depends on the offsets too, so a split swept elsewhere is biased.
+    held = gain_sweep[0].trims
+    miss = math.hypot(held.offset_a_mA - a.vertex, held.offset_b_mA - b.vertex)
+    if miss > max(_OFFSET_HELD_TOLERANCE_mA, 3 * math.hypot(a.vertex_sigma, b.vertex_sigma)):
+        warnings.append(
+            f"gain_split: swept with the offsets at ({held.offset_a_mA:g}, "
+            f"{held.offset_b_mA:g}) mA, {miss:.0f} mA from their optimum; the paper's "
+            "split assumes optimal offsets and may be biased (the coherent method is not)"
+        )
+    return TrimEstimate(
+        method=Method.PAPER,
+        trims=Trims(a.vertex, b.vertex, gain_a, gain_b),
+        sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
+        parabolas=tuple(fits),
+        warnings=tuple(warnings),
+    )
+
+
+# --- the phase-coherent estimator ------------------------------------------------------------
+
+
+class Term(StrEnum):
+    """Regressors of the complex harmonic models besides the intercept.
+
+    The trims enter linearly. The mixing terms carry the leading nonlinearity:
+    any quadratic stiffness or sensor curvature turns the fundamental ripple
+    into a 2nd harmonic ∝ H1², and the 2nd back into the 1st ∝ conj(H1)·H2.
+    Both vanish where H1 = 0, so they absorb the bend of far points without
+    moving the null.
+    """
+
+    OFFSET_A = "offset_a_mA"
+    OFFSET_B = "offset_b_mA"
+    GAIN_SPLIT = "gain_split"
+    MIXING = "mixing"
+
+    @property
+    def axis(self) -> TrimAxis | None:
+        return None if self is Term.MIXING else TrimAxis(self.value)
+
+
+_PRIMARY: dict[int, tuple[Term, ...]] = {
+    1: (Term.OFFSET_A, Term.OFFSET_B),
+    2: (Term.GAIN_SPLIT,),
+}
+_OPTIONAL: dict[int, tuple[tuple[Term, ...], ...]] = {
+    1: ((Term.GAIN_SPLIT,), (Term.MIXING,)),
+    2: ((Term.OFFSET_A, Term.OFFSET_B), (Term.MIXING,)),
+}
+
+
+def _column(points: Sequence[TrimPoint], order: int, term: Term) -> NDArray[np.complex128]:
+    axis = term.axis
+    if axis is not None:
+        return np.array([p.coordinate(axis) for p in points], dtype=np.complex128)
+    if order == 1:
+        return np.array([p.h1.conjugate() * p.h2 for p in points])
+    return np.array([p.h1 * p.h1 for p in points])
+
+
+@dataclass(frozen=True)
+class _Affine:
+    order: int
+    terms: tuple[Term, ...]
+    centre: NDArray[np.complex128]
+    coef: NDArray[np.complex128]  # intercept, then one per term
+    cov: NDArray[np.float64]  # of the real (and, identically, the imaginary) parts
+    quality: FitQuality
+
+    def linear(self, coef: NDArray[np.complex128] | None = None
+               ) -> tuple[complex, NDArray[np.complex128]]:
+        """(H at zero trims with H1 = 0, slope per axis): the map the null solves."""
+        c = self.coef if coef is None else coef
+        # Centring is undone for every term; the mixing term then simply drops out,
+        # because its regressor is zero wherever H1 is.
+        const = complex(c[0] - c[1:] @ self.centre)
+        slopes = np.zeros(len(AXES), dtype=np.complex128)
+        for term, slope in zip(self.terms, c[1:], strict=True):
+            if term.axis is not None:
+                slopes[AXES.index(term.axis)] = slope
+        return const, slopes
+
+
+def _fit(points: Sequence[TrimPoint], order: int, terms: Sequence[Term],
+         available: int) -> _Affine | None:
+    """Complex weighted least squares; None when a term does not vary in the points."""
+    columns = [_column(points, order, t) for t in terms]
+    for col in columns:
+        if np.ptp(col.real) == 0 and np.ptp(col.imag) == 0:
+            return None
+    x = np.column_stack(columns) if columns else np.zeros((len(points), 0), np.complex128)
+    centre = x.mean(axis=0)
+    design = np.column_stack([np.ones(len(points)), x - centre])
+    h = np.array([p.h(order) for p in points])
+    var = np.array([p.var(order) for p in points])
+    # Real and imaginary parts each carry half the variance: weight 2/var in |r|².
+    w = 2.0 / var
+    normal = design.conj().T @ (design * w[:, None])
+    if np.linalg.cond(normal) > 1e12:
+        return None
+    inv = np.linalg.inv(normal)
+    coef = inv @ (design.conj().T @ (w * h))
+    residual = h - design @ coef
+    sigma = np.sqrt(var / 2.0)
+    quality = _quality(
+        np.concatenate([residual.real, residual.imag]), np.concatenate([sigma, sigma]),
+        np.concatenate([h.real, h.imag]), np.concatenate([w, w]),
+        params=2 * design.shape[1], available=available, per_point=2,
+    )
+    return _Affine(order, tuple(terms), centre, coef, np.real(inv), quality)
+
+
+def _chi2(q: FitQuality) -> float:
+    return q.chi2_reduced * q.dof
+
+
+def _select(points: Sequence[TrimPoint], order: int, available: int) -> _Affine | None:
+    """Primary trims, plus each optional group that explains significantly more (F-test)."""
+    terms = list(_PRIMARY[order])
+    model = _fit(points, order, terms, available)
+    if model is None:
+        return None
+    for group in _OPTIONAL[order]:
+        wider = _fit(points, order, [*terms, *group], available)
+        if wider is None or wider.quality.dof <= 2:
+            continue
+        extra = 2 * len(group)
+        if model.quality.dof <= 0:
+            continue
+        f = ((_chi2(model.quality) - _chi2(wider.quality)) / extra) / (
+            _chi2(wider.quality) / wider.quality.dof
+        )
+        if float(stats.f.sf(f, extra, wider.quality.dof)) < CONSISTENT_P:
+            terms, model = [*terms, *group], wider
+    return model
+
+
+def _null(models: Sequence[_Affine], coefs: Sequence[NDArray[np.complex128]] | None = None
+          ) -> NDArray[np.float64]:
+    """Trims (offset A, offset B, split) minimising |H1|² + |H2|² under the fitted maps."""
+    rows: list[NDArray[np.float64]] = []
+    rhs: list[float] = []
+    for i, m in enumerate(models):
+        const, slopes = m.linear(None if coefs is None else coefs[i])
+        rows.extend([slopes.real, slopes.imag])
+        rhs.extend([-const.real, -const.imag])
+    solution, *_ = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)
+    return np.asarray(solution, dtype=np.float64)
+
+
+def _null_covariance(models: Sequence[_Affine]) -> NDArray[np.float64]:
+    """Propagate the fits' covariances through the null (numerical Jacobian)."""
+    base = [m.coef.copy() for m in models]
+    t0 = _null(models, base)
+    columns: list[NDArray[np.float64]] = []
+    blocks: list[NDArray[np.float64]] = []
+    for k, m in enumerate(models):
+        block = m.cov * _birge(m.quality) ** 2
+        for part in (1.0, 1j):  # real and imaginary parts: independent, same covariance
+            for j in range(m.coef.size):
+                perturbed = [c.copy() for c in base]
+                step = max(math.sqrt(block[j, j]), 1e-12)
+                perturbed[k][j] += part * step
+                columns.append((_null(models, perturbed) - t0) / step)
+            blocks.append(block)
+    jac = np.column_stack(columns)
+    size = sum(b.shape[0] for b in blocks)
+    full = np.zeros((size, size))
+    at = 0
+    for b in blocks:
+        n = b.shape[0]
+        full[at : at + n, at : at + n] = b
+        at += n
+    return np.asarray(jac @ full @ jac.T, dtype=np.float64)
+
+
+def _check_determined(points: Sequence[TrimPoint]) -> None:
+    offsets = np.array(sorted({(p.trims.offset_a_mA, p.trims.offset_b_mA) for p in points}))
+    if offsets.shape[0] < 3 or np.linalg.matrix_rank(offsets[1:] - offsets[0]) < 2:
+        raise Unsupported(
+            "offsets: the points do not span both offsets (need 3 non-collinear offset pairs)"
+        )
+    if len({p.coordinate(TrimAxis.GAIN_SPLIT) for p in points}) < 2:
+        raise Unsupported("gain split: the points hold a single gain split (need 2)")
+
+
+def _determined(points: Sequence[TrimPoint]) -> bool:
+    try:
+        _check_determined(points)
+    except Unsupported:
+        return False
+    return True
+
+
+def _models(points: Sequence[TrimPoint], available: int) -> list[_Affine] | None:
+    models = [_select(points, order, available) for order in (1, 2)]
+    return None if any(m is None for m in models) else [m for m in models if m is not None]
+
+
+def coherent_estimate(points: Sequence[TrimPoint]) -> TrimEstimate:
+    """Null the complex H1 and H2 with maps fitted over the least-shaken points.
+
+    Points are taken in order of measured ripple, because the ripple is what
+    bends the response; the largest such neighbourhood that the models
+    explain within the noise is used.
+    """
+    _check_determined(points)
+    ranked = sorted(points, key=lambda p: p.ripple)
+    fallback: tuple[list[TrimPoint], list[_Affine]] | None = None
+    chosen: tuple[list[TrimPoint], list[_Affine]] | None = None
+    for n in range(len(ranked), 2, -1):
+        subset = ranked[:n]
+        if not _determined(subset):
+            break
+        models = _models(subset, len(points))
+        if models is None:
+            continue
+        fallback = (subset, models)
+        if all(_consistent(m.quality) for m in models):
+            chosen = fallback
+            break
+    if fallback is None:
+        raise Unsupported("the trim points do not determine the harmonic maps")
+    used, models = chosen or fallback
+    warnings: list[str] = []
+    if chosen is None:
+        warnings.append(
+            f"coherent: even the {len(used)} least-shaken points fit worse than the noise; "
+            "uncertainty inflated"
+        )
+    t = _null(models)
+    sd = np.sqrt(np.maximum(np.diag(_null_covariance(models)), 0.0))
+    gain_a, gain_b = _split_to_gains(float(t[2]), _gain_sum(points))
+    for m in models:
+        if m.quality.dof <= 0:
+            warnings.append(f"coherent: H{m.order} has no redundant points; noise-only sigma")
+    for axis, value in zip(AXES, t, strict=True):
+        lo = min(p.coordinate(axis) for p in used)
+        hi = max(p.coordinate(axis) for p in used)
+        if not lo <= value <= hi:
+            warnings.append(
+                f"coherent: {axis.value} {value:.1f} is extrapolated beyond the points used "
+                f"[{lo:g}, {hi:g}]"
+            )
+    return TrimEstimate(
+        method=Method.COHERENT,
+        trims=Trims(float(t[0]), float(t[1]), gain_a, gain_b),
+        sigma=TrimSigma(float(sd[0]), float(sd[1]), float(sd[2]), float(sd[2])),
+        affine=tuple(
+            AffineFit(
+                order=m.order,
+                terms=m.terms,
+                centre=tuple(complex(c) for c in m.centre),
+                intercept=complex(m.coef[0]),
+                coefficients=tuple(complex(c) for c in m.coef[1:]),
+                quality=m.quality,
+            )
+            for m in models
+        ),
+        warnings=tuple(warnings),
+    )

@@ -1,0 +1,107 @@
+"""Harmonic phasors of a segment, with the variance an estimator needs to weight them.
+
+Plain correlation over whole periods (``station.dsp.demod``) is exact only
+when every sample is present. Recordings lose frames and clip, so here the
+phasors are a least-squares fit of DC plus orders 1..K over the samples that
+exist: the missing ones then bias nothing, they only cost precision. The
+variance comes from how the residual projects onto each order period by
+period, which sees coloured noise (a ringing mode, unmodelled orders) that a
+white-noise formula would miss.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+DEFAULT_ORDERS = 8
+"""Orders fitted jointly; more orders keep the others from leaking into 1 and 2
+through the holes lost samples leave."""
+
+_MIN_PERIODS_FOR_SCATTER = 4
+
+
+@dataclass(frozen=True)
+class Harmonics:
+    """Phasors H_k (k = 1..K) of one segment: A·cos(kθ + φ) gives H_k = A·e^{jφ}.
+
+    ``variance[k-1]`` is E|Ĥ_k − H_k|² (real and imaginary parts each carry half).
+    """
+
+    phasors: NDArray[np.complex128]
+    variance: NDArray[np.float64]
+    dc: float
+    residual_rms: float
+    samples_used: int
+    samples_missing: int
+
+    def h(self, order: int) -> complex:
+        return complex(self.phasors[order - 1])
+
+    def var(self, order: int) -> float:
+        return float(self.variance[order - 1])
+
+
+def _design(angle: NDArray[np.float64], orders: int) -> NDArray[np.float64]:
+    k = np.arange(1, orders + 1)
+    phase = np.outer(angle, k)
+    return np.column_stack([np.ones_like(angle), np.cos(phase), np.sin(phase)])
+
+
+def demodulate(
+    signal: NDArray[np.float64],
+    angle: NDArray[np.float64],
+    samples_per_period: float,
+    *,
+    orders: int = DEFAULT_ORDERS,
+) -> Harmonics:
+    """Least-squares phasors of orders 1..``orders`` referenced to ``angle``.
+
+    ``signal`` holds NaN where a sample is missing or saturated. Orders at or
+    above the Nyquist rate of the sampling are not fitted (they would alias).
+    """
+    if signal.shape != angle.shape or signal.ndim != 1:
+        raise ValueError(f"signal {signal.shape} and angle {angle.shape} must match (1-D)")
+    nyquist = math.floor((samples_per_period - 1e-9) / 2)
+    fitted = max(1, min(orders, nyquist))
+    ok = ~np.isnan(signal)
+    used = int(ok.sum())
+    x = _design(angle[ok], fitted)
+    if used <= x.shape[1]:
+        raise ValueError(f"{used} samples cannot determine {x.shape[1]} coefficients")
+    y = signal[ok]
+    coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+    residual = y - x @ coef
+    a, b = coef[1 : fitted + 1], coef[fitted + 1 :]
+    phasors = np.full(orders, np.nan + 0j, dtype=np.complex128)
+    phasors[:fitted] = a - 1j * b
+    dof = used - x.shape[1]
+    sigma2 = float(residual @ residual) / dof
+    white = np.diag(np.linalg.inv(x.T @ x))
+    variance = np.full(orders, np.nan)
+    variance[:fitted] = sigma2 * (white[1 : fitted + 1] + white[fitted + 1 :])
+    periods = int(signal.size // samples_per_period)
+    if periods >= _MIN_PERIODS_FOR_SCATTER:
+        # Per-period projections of the residual: their scatter is the variance of one
+        # period's phasor; the segment's phasor averages `periods` of them.
+        r = np.zeros(signal.size)
+        r[ok] = residual
+        counts = np.zeros(signal.size)
+        counts[ok] = 1.0
+        edges = np.round(np.arange(periods) * samples_per_period).astype(np.intp)
+        per_count = np.maximum(np.add.reduceat(counts, edges), 1.0)
+        for k in range(1, fitted + 1):
+            z = 2.0 * np.add.reduceat(r * np.exp(-1j * k * angle), edges) / per_count
+            scatter = float(np.sum(np.abs(z) ** 2)) / (periods * (periods - 1))
+            variance[k - 1] = max(variance[k - 1], scatter)
+    return Harmonics(
+        phasors=phasors,
+        variance=variance,
+        dc=float(coef[0]),
+        residual_rms=math.sqrt(float(residual @ residual) / used),
+        samples_used=used,
+        samples_missing=int(signal.size - used),
+    )

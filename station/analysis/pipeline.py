@@ -1,0 +1,238 @@
+"""From a timeline to trims: segment, demodulate, estimate, per operating condition.
+
+This is the calibration's arithmetic, shared by ``station analyze`` and the
+live procedure. It is pure: it takes the per-SYNC arrays a reader (or a live
+capture) produced and returns numbers, so every step can be tested on arrays.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+from threadpoolctl import threadpool_limits
+
+from station.analysis.estimate import (
+    Method,
+    TrimEstimate,
+    TrimPoint,
+    Unsupported,
+    coherent_estimate,
+    paper_estimate,
+)
+from station.analysis.harmonics import DEFAULT_ORDERS, Harmonics, demodulate
+from station.analysis.segments import Rejected, Segment, steady_segments
+from station.analysis.timeline import Timeline
+from station.errors import InputError
+
+
+class MethodChoice(StrEnum):
+    """What the caller asks for; AUTO prefers the phase-coherent estimator."""
+
+    AUTO = "auto"
+    PAPER = "paper"
+    COHERENT = "coherent"
+
+
+@dataclass(frozen=True)
+class AnalysisOptions:
+    method: MethodChoice = MethodChoice.AUTO
+    settle_periods: float | None = None  # None: judged from the data
+    orders: int = DEFAULT_ORDERS
+
+
+class EstimateUnsupported(InputError):
+    """The recording holds no data from which trims can be estimated."""
+
+
+@dataclass(frozen=True)
+class Measured:
+    """One steady segment and its harmonics."""
+
+    segment: Segment
+    harmonics: Harmonics
+    saturated: int  # samples clipped at ±32767 (left out of the fit)
+
+    def point(self) -> TrimPoint:
+        h = self.harmonics
+        return TrimPoint(self.segment.trims, h.h(1), h.var(1), h.h(2), h.var(2))
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One operating point: amplitude and signed electrical frequency."""
+
+    amplitude_mA: int
+    electrical_hz: float
+    measured: tuple[Measured, ...]
+
+    @property
+    def trim_points(self) -> int:
+        return len({m.segment.trims for m in self.measured})
+
+
+@dataclass(frozen=True)
+class ConditionResult:
+    condition: Condition
+    estimate: TrimEstimate | None
+    estimates: dict[Method, TrimEstimate]
+    unsupported: dict[Method, str]
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """Everything ``station analyze`` reports; ``primary`` holds the trims."""
+
+    timeline: Timeline
+    conditions: tuple[ConditionResult, ...]
+    rejected: tuple[Rejected, ...]
+    primary: ConditionResult
+    options: AnalysisOptions
+    warnings: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def estimate(self) -> TrimEstimate:
+        assert self.primary.estimate is not None  # guaranteed by analyze()
+        return self.primary.estimate
+
+    @property
+    def segments_used(self) -> int:
+        return len(self.primary.condition.measured)
+
+
+def tangential_signal(timeline: Timeline) -> NDArray[np.float64]:
+    """Load tangential acceleration in m/s², NaN where lost or clipped."""
+    meta = timeline.metadata
+    counts = timeline.accel_counts[:, meta.tangential_axis.column].astype(np.float64)
+    signal = counts * meta.sensor_lsb_mps2
+    signal[~timeline.sensor_valid | timeline.saturated] = np.nan
+    return signal
+
+
+def measure(
+    timeline: Timeline, options: AnalysisOptions
+) -> tuple[list[Measured], list[Rejected]]:
+    """Harmonics of every steady segment of the run."""
+    signal = tangential_signal(timeline)
+    segments, rejected = steady_segments(
+        timeline, signal, settle_periods=options.settle_periods
+    )
+    out: list[Measured] = []
+    for seg in segments:
+        window = signal[seg.start : seg.stop]
+        spp = 4 * seg.microsteps_per_fullstep / abs(seg.microsteps_per_sample)
+        try:
+            h = demodulate(window, seg.electrical_angle(), spp, orders=options.orders)
+        except ValueError as exc:
+            rejected.append(Rejected(seg.start, seg.stop, f"cannot demodulate: {exc}"))
+            continue
+        saturated = int(np.count_nonzero(timeline.saturated[seg.start : seg.stop]))
+        out.append(Measured(seg, h, saturated))
+    return out, rejected
+
+
+SAME_SPEED = 1e-3
+"""Relative difference below which two segments ran at one commanded speed."""
+
+
+def group_conditions(measured: Sequence[Measured], sync_period_s: float) -> list[Condition]:
+    """Segments grouped by amplitude and speed, the condition with most trim points first.
+
+    Fitted slopes of one commanded velocity differ in their last digits, so
+    speeds are clustered (sorted, split where consecutive ones differ by more
+    than ``SAME_SPEED``) rather than compared exactly.
+    """
+    by_key: dict[tuple[int, bool], list[Measured]] = {}
+    for m in measured:
+        forward = m.segment.microsteps_per_sample > 0
+        by_key.setdefault((m.segment.amplitude_mA, forward), []).append(m)
+    conditions: list[Condition] = []
+    for (amplitude, _), members in by_key.items():
+        members.sort(key=lambda m: abs(m.segment.microsteps_per_sample))
+        cluster: list[Measured] = []
+        for m in members:
+            speed = abs(m.segment.microsteps_per_sample)
+            last = abs(cluster[-1].segment.microsteps_per_sample) if cluster else speed
+            if speed > last * (1 + SAME_SPEED):
+                conditions.append(_condition(amplitude, cluster, sync_period_s))
+                cluster = []
+            cluster.append(m)
+        conditions.append(_condition(amplitude, cluster, sync_period_s))
+    conditions.sort(key=lambda c: (c.trim_points, len(c.measured), c.amplitude_mA), reverse=True)
+    return conditions
+
+
+def _condition(amplitude: int, members: Sequence[Measured], sync_period_s: float) -> Condition:
+    # Keep the run's order: people read trim points in the order they were measured.
+    ordered = sorted(members, key=lambda m: m.segment.start)
+    hz = float(np.median([m.segment.electrical_hz(sync_period_s) for m in ordered]))
+    return Condition(amplitude_mA=amplitude, electrical_hz=hz, measured=tuple(ordered))
+
+
+def estimate_condition(condition: Condition, choice: MethodChoice) -> ConditionResult:
+    """Both estimators where the data allow; the chosen one's result, or why not."""
+    points = [m.point() for m in condition.measured]
+    estimates: dict[Method, TrimEstimate] = {}
+    unsupported: dict[Method, str] = {}
+    for method, estimator in ((Method.COHERENT, coherent_estimate), (Method.PAPER, paper_estimate)):
+        try:
+            estimates[method] = estimator(points)
+        except Unsupported as exc:
+            unsupported[method] = str(exc)
+    if choice is MethodChoice.AUTO:
+        chosen = estimates.get(Method.COHERENT) or estimates.get(Method.PAPER)
+    else:
+        chosen = estimates.get(Method(choice.value))
+    return ConditionResult(condition, chosen, estimates, unsupported)
+
+
+def analyze(timeline: Timeline, options: AnalysisOptions | None = None) -> Analysis:
+    """Trims from a timeline; raises EstimateUnsupported with every reason when none.
+
+    BLAS runs single-threaded here: the fits are small (thousands of rows, a
+    few dozen columns), and on a loaded 2-core machine OpenBLAS's threads made
+    them 5-30 times slower.
+    """
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _analyze(timeline, options or AnalysisOptions())
+
+
+def _analyze(timeline: Timeline, opts: AnalysisOptions) -> Analysis:
+    measured, rejected = measure(timeline, opts)
+    if not measured:
+        reasons = sorted({r.reason for r in rejected}) or ["the drive never ran at constant speed"]
+        raise EstimateUnsupported(f"no steady segment to analyse: {'; '.join(reasons)}")
+    results = [
+        estimate_condition(c, opts.method)
+        for c in group_conditions(measured, timeline.sync_period_s)
+    ]
+    primary = next((r for r in results if r.estimate is not None), None)
+    if primary is None:
+        top = results[0]
+        why = "; ".join(f"{m.value}: {reason}" for m, reason in top.unsupported.items())
+        raise EstimateUnsupported(
+            f"the data cannot support an estimate at {top.condition.amplitude_mA} mA, "
+            f"{top.condition.electrical_hz:.2f} Hz ({why})"
+        )
+    warnings: list[str] = []
+    if primary is not results[0]:
+        warnings.append(
+            "the condition with the most trim points supports no estimate; "
+            "trims come from the next one"
+        )
+    if timeline.losses.saturated_samples:
+        warnings.append(
+            f"{timeline.losses.saturated_samples} samples clipped at the sensor's full scale "
+            "were left out"
+        )
+    return Analysis(
+        timeline=timeline,
+        conditions=tuple(results),
+        rejected=tuple(rejected),
+        primary=primary,
+        options=opts,
+        warnings=tuple(warnings),
+    )

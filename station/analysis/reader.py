@@ -1,0 +1,265 @@
+"""Read an ICD.md §5 recording into a timeline: the only I/O of the analysis.
+
+The log is iterated once with python-can's own ``LogReader``, so every format
+it reads is read the same way. A ten-minute log is millions of frames: the
+loop keeps no ``can.Message``, only a tag, a timestamp and the payload bytes
+of the ICD frames in compact buffers, decoded afterwards with numpy.
+
+A recording that stops early must not pass for a short run, and some readers
+stop silently at a cut, so each format's own end marker is checked too.
+"""
+
+from __future__ import annotations
+
+import gc
+import sys
+from array import array
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+import can
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.cia301 import SYNC_COB_ID, TPDO1_COB_BASE, TPDO2_COB_BASE
+from station.analysis.timeline import PAYLOAD_BYTES, FrameKind, Timeline, build_timeline
+from station.errors import RecordingError
+from station.recording import LogFormat, RecordingMetadata, log_format_for, read_metadata
+
+FRAMES_RECORDED_KEY: Final = "frames_recorded"
+"""Metadata key our writer adds: every frame it wrote, so a cut log is caught
+even where the format has no end marker. Other benches may omit it."""
+
+ASC_END_MARKER: Final = "end triggerblock"
+"""Last line of a complete Vector ASC log (case as Vector and python-can vary)."""
+
+_TAIL_BYTES = 4096
+_SYNC_BYTES = 1
+
+# python-can's BLF writer puts a placeholder header (its own size, no objects)
+# first and fills it in only when it closes the file.
+_BLF_PLACEHOLDER_SIZE = 144
+
+_NAMES: Final = {
+    FrameKind.SYNC: f"SYNC (COB-ID 0x{SYNC_COB_ID:03X})",
+    FrameKind.SENSOR: "sensor TPDO1",
+    FrameKind.DRIVE_STATUS: "drive TPDO1",
+}
+
+
+@dataclass(frozen=True)
+class LogFrames:
+    """The ICD frames of one log in bus order, with what was left out."""
+
+    kinds: NDArray[np.uint8]  # FrameKind per frame
+    payloads: NDArray[np.uint8]  # (K, 8); a SYNC's counter in column 0
+    frames_total: int  # every frame the log holds
+    frames_ignored: int
+    frames_malformed: int
+
+
+def read_recording(log_path: Path) -> Timeline:
+    """The sample timeline of a recording (log plus metadata beside it)."""
+    log_format = log_format_for(log_path)
+    metadata = read_metadata(log_path)
+    frames = read_log_frames(log_path, log_format, metadata)
+    return build_timeline(
+        metadata,
+        frames.kinds,
+        frames.payloads,
+        frames_ignored=frames.frames_ignored,
+        frames_malformed=frames.frames_malformed,
+    )
+
+
+def read_log_frames(
+    log_path: Path, log_format: LogFormat, metadata: RecordingMetadata
+) -> LogFrames:
+    """Stream the log once, keeping the ICD frames and checking the log is whole."""
+    if not log_path.is_file():
+        raise RecordingError(f"{log_path}: log file is missing")
+    if metadata.drive_node == metadata.sensor_node:
+        raise RecordingError(
+            f"{log_path}: drive and sensor share node-ID {metadata.drive_node}; "
+            "their TPDO1 frames cannot be told apart"
+        )
+    expected = _expected_frames(log_path, metadata)
+    reader = _open_reader(log_path, log_format)
+    with reader:
+        _check_complete_before(log_path, log_format, reader)
+        scan = _scan(log_path, reader, metadata)
+    if expected is not None and scan.frames_total < expected:
+        raise RecordingError(
+            f"{log_path}: the log is truncated: it holds {scan.frames_total} frames, "
+            f"the metadata says {expected} were recorded"
+        )
+    counts = np.bincount(scan.kinds, minlength=len(FrameKind))
+    for kind, name in _NAMES.items():
+        if counts[kind] == 0:
+            raise RecordingError(f"{log_path}: the log holds no {name} frame")
+    return scan
+
+
+def _expected_frames(log_path: Path, metadata: RecordingMetadata) -> int | None:
+    if FRAMES_RECORDED_KEY not in metadata.extra:
+        return None
+    value = metadata.extra[FRAMES_RECORDED_KEY]
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise RecordingError(
+            f"{log_path}: metadata key {FRAMES_RECORDED_KEY!r} has a malformed value {value!r}"
+        )
+    return value
+
+
+@contextmanager
+def _quiet_asammdf_finaliser() -> Iterator[None]:
+    """asammdf's ``MDF4.__del__`` raises on an object whose constructor failed
+    (a cut MF4 file), which Python reports as an unraisable exception at some
+    later, unrelated moment. Those reports, and only those, are dropped while
+    a reader is opened."""
+    previous = sys.unraisablehook
+
+    def hook(report: Any) -> None:
+        if getattr(report.object, "__qualname__", "") != "MDF4.__del__":
+            previous(report)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
+
+
+def _open_reader(log_path: Path, log_format: LogFormat) -> can.io.generic.MessageReader:
+    failure = ""
+    with _quiet_asammdf_finaliser():
+        try:
+            reader: can.io.generic.MessageReader = can.LogReader(str(log_path))
+        except Exception as exc:  # each reader fails its own way on a bad file
+            failure = _describe(exc)
+        else:
+            return reader
+        # The half-built reader dies here, inside the quiet window.
+        gc.collect()
+    what = f"cannot be read as {log_format.name} (truncated or not that format)"
+    raise RecordingError(f"{log_path}: {what}: {failure}")
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+def _check_complete_before(
+    log_path: Path, log_format: LogFormat, reader: can.io.generic.MessageReader
+) -> None:
+    """Truncation a reader would not notice, judged before the long read."""
+    checks: dict[LogFormat, Callable[[Path, can.io.generic.MessageReader], str | None]] = {
+        LogFormat.BLF: _blf_incomplete,
+        LogFormat.ASC: _asc_incomplete,
+        LogFormat.CANDUMP: _last_line_incomplete,
+        LogFormat.CSV: _last_line_incomplete,
+        # asammdf refuses a cut MF4 file itself (its blocks point past the end).
+    }
+    check = checks.get(log_format)
+    problem = check(log_path, reader) if check is not None else None
+    if problem is not None:
+        raise RecordingError(f"{log_path}: the log is truncated: {problem}")
+
+
+def _blf_incomplete(log_path: Path, reader: can.io.generic.MessageReader) -> str | None:
+    """python-can's BLFReader stops quietly at a cut (a partial zlib container
+    decompresses to fewer objects), but the file header says how big the file is."""
+    promised = int(getattr(reader, "file_size", 0))
+    objects = int(getattr(reader, "object_count", 0))
+    actual = log_path.stat().st_size
+    if actual < promised:
+        return f"the BLF header promises {promised} bytes, the file has {actual}"
+    if promised == _BLF_PLACEHOLDER_SIZE and objects == 0 and actual > promised:
+        return "the BLF header was never completed (the writer did not close the file)"
+    return None
+
+
+def _tail(log_path: Path) -> bytes:
+    with log_path.open("rb") as stream:
+        size = stream.seek(0, 2)
+        stream.seek(max(0, size - _TAIL_BYTES))
+        return stream.read()
+
+
+def _asc_incomplete(log_path: Path, _reader: can.io.generic.MessageReader) -> str | None:
+    lines = _tail(log_path).rstrip().splitlines()
+    last = lines[-1].decode("ascii", "replace").strip() if lines else ""
+    if " ".join(last.lower().split()) != ASC_END_MARKER:
+        return f"an ASC log ends with 'End TriggerBlock', this one with {last[:60]!r}"
+    return None
+
+
+def _last_line_incomplete(log_path: Path, _reader: can.io.generic.MessageReader) -> str | None:
+    """Line-per-frame formats: a writer ends every line, so a cut one shows."""
+    if not _tail(log_path).endswith(b"\n"):
+        return "the last line is incomplete (no line end)"
+    return None
+
+
+def _scan(
+    log_path: Path, reader: can.io.generic.MessageReader, metadata: RecordingMetadata
+) -> LogFrames:
+    """The hot loop: one dict lookup and three appends per kept frame."""
+    kinds = bytearray()
+    stamps = array("d")
+    sync_bytes = bytearray()
+    tpdo_bytes = bytearray()
+    wanted: dict[int, tuple[int, int, bytearray]] = {
+        SYNC_COB_ID: (FrameKind.SYNC, _SYNC_BYTES, sync_bytes),
+        TPDO1_COB_BASE + metadata.sensor_node: (FrameKind.SENSOR, PAYLOAD_BYTES, tpdo_bytes),
+        TPDO1_COB_BASE + metadata.drive_node: (FrameKind.DRIVE_STATUS, PAYLOAD_BYTES, tpdo_bytes),
+        TPDO2_COB_BASE + metadata.drive_node: (FrameKind.DRIVE_TRIMS, PAYLOAD_BYTES, tpdo_bytes),
+    }
+    lookup = wanted.get
+    add_kind = kinds.append
+    add_stamp = stamps.append
+    total = 0
+    malformed = 0
+    try:
+        for total, msg in enumerate(reader, 1):  # noqa: B007 - read after the loop
+            spec = lookup(msg.arbitration_id)
+            if spec is None:
+                continue
+            if msg.is_extended_id or msg.is_remote_frame or msg.is_error_frame:
+                continue  # an ICD number, but not an ICD frame: ignored
+            kind, size, buffer = spec
+            data = msg.data
+            if len(data) != size:
+                malformed += 1
+                continue
+            add_kind(kind)
+            add_stamp(msg.timestamp)
+            buffer += data
+    except Exception as exc:  # each reader fails its own way on a bad file
+        raise RecordingError(
+            f"{log_path}: cannot be parsed after frame {total} "
+            f"(truncated or corrupt): {_describe(exc)}"
+        ) from None
+    kind_array = np.frombuffer(kinds, dtype=np.uint8)
+    payloads = np.zeros((kind_array.size, PAYLOAD_BYTES), dtype=np.uint8)
+    is_sync = kind_array == FrameKind.SYNC
+    payloads[is_sync, 0] = np.frombuffer(sync_bytes, dtype=np.uint8)
+    payloads[~is_sync] = np.frombuffer(tpdo_bytes, dtype=np.uint8).reshape(-1, PAYLOAD_BYTES)
+    del is_sync
+    times = np.frombuffer(stamps, dtype=np.float64)
+    if times.size > 1 and bool((np.diff(times) < 0).any()):
+        # ICD.md §5: timestamps only order frames; a stable sort keeps bus
+        # order among frames stamped alike.
+        order = np.argsort(times, kind="stable")
+        kind_array, payloads = kind_array[order], payloads[order]
+    return LogFrames(
+        kinds=kind_array,
+        payloads=payloads,
+        frames_total=total,
+        frames_ignored=total - kind_array.size - malformed,
+        frames_malformed=malformed,
+    )

@@ -1,0 +1,357 @@
+"""Steady segments: stretches where the drive held one trim set, amplitude and speed.
+
+Everything here is judged from what the drive itself reported (TPDO2 trims in
+effect, TPDO1 amplitude and position demand), never from a schedule, so a
+recording from any bench segments the same way. A segment keeps only samples
+that are (1) at constant commanded velocity, with a margin of one detection
+window around every ramp, (2) past the rotor's settling after the last change,
+judged from the data, and (3) a whole number of electrical periods, ending at
+the end of the hold where the rotor has settled longest.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.analysis.timeline import Timeline
+from station.core import Trims
+
+RAMP_WINDOW = 32
+"""Samples each side over which a change of velocity is looked for.
+
+Integer position demand on a constant-velocity line satisfies
+|p[n+W] − 2p[n] + p[n−W]| ≤ 1; any acceleration a (microsteps/sample²) adds
+a·W², so W = 32 catches ramps down to 0.002 microsteps/sample² (2000
+microsteps/s² at 1 kHz), far gentler than any drive's profile.
+"""
+
+_CURVATURE_TOLERANCE = 2
+"""Microsteps: the rounding of two integer position differences, plus one for jitter."""
+
+_LINE_TOLERANCE = 2.5
+"""Microsteps a steady position demand may stray from its fitted line."""
+
+MIN_PERIODS = 3
+"""A segment shorter than this many electrical periods carries no usable phasor."""
+
+_SETTLE_BLOCK = 3
+"""Periods averaged when deciding that the rotor has settled."""
+
+_SETTLE_SIGMAS = 3.0
+
+
+_OPERATION_ENABLED_MASK = 0x006F
+_OPERATION_ENABLED = 0x0027
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Samples [start, stop) of one steady condition, a whole number of periods long.
+
+    ``position_at(n)`` is the line fitted through the position demand, so the
+    electrical angle is defined at lost drive samples too. ``held_from`` is the
+    first sample of the hold and ``steady_from`` the first at constant
+    velocity, so the settling time dropped can be reported.
+    """
+
+    start: int
+    stop: int
+    held_from: int
+    steady_from: int
+    trims: Trims
+    amplitude_mA: int
+    position0: float  # fitted position demand at sample ``start`` (microsteps)
+    microsteps_per_sample: float  # fitted slope
+    periods: int
+    microsteps_per_fullstep: int
+
+    @property
+    def samples(self) -> int:
+        return self.stop - self.start
+
+    def velocity(self, sync_period_s: float) -> float:
+        """Microsteps/s."""
+        return self.microsteps_per_sample / sync_period_s
+
+    def electrical_hz(self, sync_period_s: float) -> float:
+        """Signed: negative when the electrical angle decreases."""
+        return self.microsteps_per_sample / (4 * self.microsteps_per_fullstep) / sync_period_s
+
+    def electrical_angle(self) -> NDArray[np.float64]:
+        """ICD.md §2: x_u = 2π·(position mod 4m)/(4m) at every sample of the segment."""
+        cycle = 4 * self.microsteps_per_fullstep
+        n = np.arange(self.samples, dtype=np.float64)
+        position = self.position0 + self.microsteps_per_sample * n
+        return (2 * math.pi / cycle) * np.mod(position, cycle)
+
+
+@dataclass(frozen=True)
+class Hold:
+    """A maximal run of samples with one reported trim set, amplitude and enable state."""
+
+    start: int
+    stop: int
+    trims: tuple[int, int, int, int]
+    amplitude_mA: int
+    enabled: bool
+
+
+def _forward_fill(values: NDArray[np.int64], valid: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """Carry the last reported value over lost frames (the first one backwards)."""
+    if not valid.any():
+        raise ValueError("no valid rows to fill from")
+    index = np.where(valid, np.arange(valid.size), 0)
+    np.maximum.accumulate(index, out=index)
+    first = int(np.argmax(valid))
+    index[:first] = first
+    return values[index]
+
+
+def holds(timeline: Timeline) -> list[Hold]:
+    """Split the run wherever the reported trims, amplitude or enable state change.
+
+    A lost TPDO2 or TPDO1 repeats the last reported value: the boundary may
+    then sit one sample late, which the settling margin absorbs.
+    """
+    trims = _forward_fill(timeline.trims.astype(np.int64), timeline.trims_valid)
+    amplitude = _forward_fill(timeline.amplitude_mA.astype(np.int64), timeline.drive_valid)
+    status = _forward_fill(timeline.statusword.astype(np.int64), timeline.drive_valid)
+    enabled = (status & _OPERATION_ENABLED_MASK) == _OPERATION_ENABLED
+    key = np.column_stack([trims, amplitude, enabled.astype(np.int64)])
+    change = np.flatnonzero(np.any(key[1:] != key[:-1], axis=1)) + 1
+    bounds = [0, *change.tolist(), timeline.samples]
+    out: list[Hold] = []
+    for a, b in itertools.pairwise(bounds):
+        t = trims[a]
+        out.append(
+            Hold(
+                start=a,
+                stop=b,
+                trims=(int(t[0]), int(t[1]), int(t[2]), int(t[3])),
+                amplitude_mA=int(amplitude[a]),
+                enabled=bool(enabled[a]),
+            )
+        )
+    return out
+
+
+_GLITCH_MICROSTEPS = 3.0
+"""A reported position this far off the line through its neighbours is misplaced."""
+
+
+def position_glitches(position: NDArray[np.int64], valid: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Valid-looking position samples that cannot be where the timeline put them.
+
+    When a SYNC and the drive frame before it are both lost, a reader may place
+    the next frame one sample early: it then sits a whole sample's travel off
+    the line through its neighbours. Steady motion and any real ramp stay
+    within a microstep or two of that line, so the sample whose deviation is
+    large and larger than both neighbours' is the culprit.
+    """
+    idx = np.flatnonzero(valid)
+    out = np.zeros(valid.shape, dtype=bool)
+    if idx.size < 3:
+        return out
+    p = position[idx].astype(np.float64)
+    n = idx.astype(np.float64)
+    frac = (n[1:-1] - n[:-2]) / (n[2:] - n[:-2])
+    err = np.zeros(idx.size)
+    err[1:-1] = np.abs(p[1:-1] - (p[:-2] + (p[2:] - p[:-2]) * frac))
+    peak = np.zeros(idx.size, dtype=bool)
+    peak[1:-1] = (err[1:-1] > _GLITCH_MICROSTEPS) & (err[1:-1] >= err[:-2]) & (
+        err[1:-1] >= err[2:]
+    )
+    out[idx[peak]] = True
+    return out
+
+
+def constant_velocity_runs(
+    position: NDArray[np.int64], valid: NDArray[np.bool_], start: int, stop: int
+) -> list[tuple[int, int]]:
+    """Maximal runs of samples in [start, stop) whose position demand is on one line.
+
+    Lost samples are bridged by interpolation for this test only; the line
+    itself is fitted later through the real samples.
+    """
+    n = np.arange(start, stop)
+    ok = valid[start:stop]
+    if ok.sum() < 2 * RAMP_WINDOW + 1:
+        return []
+    p = np.interp(n, n[ok], position[start:stop][ok].astype(np.float64))
+    w = RAMP_WINDOW
+    curvature = np.abs(p[2 * w :] - 2 * p[w:-w] + p[: -2 * w])
+    # Centre i is steady when its whole window [i−w, i+w] lies on one line. A run of
+    # such centres is widened by w only where it meets the hold's own edge (a trim or
+    # amplitude change, not a ramp); on a ramp's side the window is the margin. Runs
+    # shorter than a window are the test flickering at a ramp's end, not motion.
+    steady = np.zeros(n.size, dtype=np.int8)
+    steady[w:-w] = curvature <= _CURVATURE_TOLERANCE
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], steady, [0]])))
+    runs: list[tuple[int, int]] = []
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if b - a < w:
+            continue
+        lo = 0 if a == w else int(a)
+        hi = n.size if b == n.size - w else int(b)
+        runs.append((start + lo, start + hi))
+    return runs
+
+
+def _fit_line(
+    position: NDArray[np.int64], valid: NDArray[np.bool_], start: int, stop: int
+) -> tuple[float, float] | None:
+    """(position at ``start``, slope) through the valid samples, or None if not a line."""
+    n = np.flatnonzero(valid[start:stop])
+    if n.size < 2:
+        return None
+    p = position[start:stop][n].astype(np.float64)
+    ref = p[0]
+    slope, intercept = np.polyfit(n.astype(np.float64), p - ref, 1)
+    if np.max(np.abs(p - ref - (intercept + slope * n))) > _LINE_TOLERANCE:
+        return None
+    return float(ref + intercept), float(slope)
+
+
+def _period_phasors(
+    signal: NDArray[np.float64], ok: NDArray[np.bool_], angle: NDArray[np.float64],
+    samples_per_period: float, orders: tuple[int, ...],
+) -> NDArray[np.complex128]:
+    """(periods, orders) crude per-period phasors, for judging settling only."""
+    periods = int(signal.size // samples_per_period)
+    edges = np.round(np.arange(periods + 1) * samples_per_period).astype(np.intp)
+    out = np.zeros((periods, len(orders)), dtype=np.complex128)
+    s = np.where(ok, signal - np.mean(signal[ok]), 0.0)
+    counts = np.add.reduceat(ok.astype(np.float64), edges[:-1])[:periods]
+    counts = np.maximum(counts, 1.0)
+    for j, k in enumerate(orders):
+        z = s * np.exp(-1j * k * angle)
+        out[:, j] = 2.0 * np.add.reduceat(z, edges[:-1])[:periods] / counts
+    return out
+
+
+def _complex_median(z: NDArray[np.complex128], axis: int = 0) -> NDArray[np.complex128]:
+    return np.median(z.real, axis=axis) + 1j * np.median(z.imag, axis=axis)
+
+
+def settled_period(per_period: NDArray[np.complex128]) -> int | None:
+    """Index of the first period from which the phasors stay at their final level.
+
+    The reference is the last half of the hold, assumed settled; a block of
+    periods has settled when its median is within a few robust spreads of the
+    reference for every order. Medians, because a period that lost samples
+    or clipped gives a wild crude phasor that must not decide anything. None
+    when even the reference is not steady (the hold is too short for the
+    rotor to settle).
+    """
+    periods = per_period.shape[0]
+    if periods < 2 * _SETTLE_BLOCK:
+        return None
+    tail = per_period[periods // 2 :]
+    reference = _complex_median(tail)
+    # Noise from period-to-period differences, which a slow trend barely touches:
+    # 1.4826·median|z[k+1] − z[k]|/√2 is about 1.74 σ for circular Gaussian scatter.
+    steps = np.abs(np.diff(per_period, axis=0))
+    spread = 1.4826 * np.median(steps, axis=0) / math.sqrt(2.0) + 1e-12
+    quarter = tail.shape[0] // 2
+    if quarter >= _SETTLE_BLOCK:
+        drift = np.abs(_complex_median(tail[:quarter]) - _complex_median(tail[quarter:]))
+        if np.any(drift > _SETTLE_SIGMAS * spread * math.sqrt(2.0 / quarter)):
+            return None
+    for j in range(periods - _SETTLE_BLOCK + 1):
+        block = _complex_median(per_period[j : j + _SETTLE_BLOCK])
+        if np.all(np.abs(block - reference) <= _SETTLE_SIGMAS * spread / 2):
+            return j
+    return None
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A steady stretch that could not be used, and why (for the report)."""
+
+    start: int
+    stop: int
+    reason: str
+
+
+def steady_segments(
+    timeline: Timeline,
+    signal: NDArray[np.float64],
+    *,
+    settle_periods: float | None = None,
+    min_speed_hz: float = 1.0,
+) -> tuple[list[Segment], list[Rejected]]:
+    """Steady, settled, whole-period segments of the run, and the stretches rejected.
+
+    ``signal`` is the tangential acceleration (NaN where lost or saturated).
+    With ``settle_periods`` None the settling is judged from the data (per
+    period phasors of orders 1 and 2); a number drops exactly that many
+    electrical periods after the start of each steady stretch.
+    """
+    m = timeline.metadata.microsteps_per_fullstep
+    cycle = 4 * m
+    period_s = timeline.sync_period_s
+    ok = ~np.isnan(signal)
+    drive_ok = timeline.drive_valid & ~position_glitches(timeline.position, timeline.drive_valid)
+    segments: list[Segment] = []
+    rejected: list[Rejected] = []
+    for hold in holds(timeline):
+        if not hold.enabled:
+            continue
+        for a, b in constant_velocity_runs(timeline.position, drive_ok, hold.start, hold.stop):
+            line = _fit_line(timeline.position, drive_ok, a, b)
+            if line is None:
+                rejected.append(Rejected(a, b, "position demand is not a straight line"))
+                continue
+            p0, slope = line
+            hz = abs(slope) / cycle / period_s
+            if hz < min_speed_hz:
+                continue  # standstill or creeping: no electrical frequency to lock to
+            spp = cycle / abs(slope)
+            n = np.arange(b - a, dtype=np.float64)
+            angle = (2 * math.pi / cycle) * np.mod(p0 + slope * n, cycle)
+            if settle_periods is None:
+                phasors = _period_phasors(signal[a:b], ok[a:b], angle, spp, (1, 2))
+                first = settled_period(phasors)
+                if first is None:
+                    held = (b - a) / spp
+                    reason = (
+                        f"a steady stretch of {held:.1f} periods is too short to judge settling "
+                        f"(needs {2 * _SETTLE_BLOCK}); give the settling time explicitly"
+                        if held < 2 * _SETTLE_BLOCK
+                        else "the rotor did not settle within the hold"
+                    )
+                    rejected.append(Rejected(a, b, reason))
+                    continue
+                skip = first * spp
+            else:
+                skip = settle_periods * spp
+            # Half a sample of slack: the fitted speed is off in its last digits, and a hold
+            # of exactly N periods must not come out as N − ε.
+            periods = math.floor((b - a - skip + 0.5) / spp)
+            if periods < MIN_PERIODS:
+                rejected.append(
+                    Rejected(a, b, f"fewer than {MIN_PERIODS} settled electrical periods")
+                )
+                continue
+            start = b - round(periods * spp)
+            t = hold.trims
+            segments.append(
+                Segment(
+                    start=start,
+                    stop=b,
+                    held_from=hold.start,
+                    steady_from=a,
+                    trims=Trims(float(t[0]), float(t[1]), float(t[2]), float(t[3])),
+                    amplitude_mA=hold.amplitude_mA,
+                    position0=p0 + slope * (start - a),
+                    microsteps_per_sample=slope,
+                    periods=periods,
+                    microsteps_per_fullstep=m,
+                )
+            )
+    return segments, rejected

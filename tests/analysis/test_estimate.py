@@ -1,0 +1,258 @@
+"""Trim estimators (station.analysis.estimate) on synthetic trim points.
+
+The points come from a known complex-affine model of eq. (16): H1 is affine in
+the offsets (the two act in quadrature) with a weak pull from the gain split,
+H2 is affine in the split with a weak pull from the offsets plus the H1²
+mixing a quadratic nonlinearity adds. Both vanish at a known optimum, so every
+estimate can be judged against it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from station.analysis.estimate import (
+    Method,
+    TrimAxis,
+    TrimPoint,
+    Unsupported,
+    coherent_estimate,
+    fit_parabola,
+    paper_estimate,
+)
+from station.core import GAIN_UNITY, Trims
+
+# Offset A, offset B (mA), gain split (1/10000; gain A = 10000 + split, gain B = 10000 − split).
+OPTIMUM: NDArray[np.float64] = np.array([-120.0, 55.0, -150.0])
+J1 = np.array([2e-3 * np.exp(0.3j), 2e-3j * np.exp(0.3j), 3e-6 * np.exp(2.0j)])  # m/s² per unit
+J2 = np.array([1e-5 * np.exp(0.5j), 1e-5 * np.exp(1.5j), 1.5e-4 * np.exp(1.0j)])
+MIXING = 0.2  # H2 += MIXING·H1², 1/(m/s²)
+NOISE_VAR = 6e-3**2  # E|n|² of each phasor: 300 µg/√Hz over a 0.5 s hold
+OFFSETS = np.linspace(-500.0, 500.0, 11)
+SPLITS = np.linspace(-3000.0, 3000.0, 11)
+
+
+def trims_of(u: NDArray[np.float64]) -> Trims:
+    return Trims(float(u[0]), float(u[1]), GAIN_UNITY + float(u[2]), GAIN_UNITY - float(u[2]))
+
+
+def cross_design(
+    *, a_at: float = 0.0, b_at: float = 0.0, split_at: tuple[float, float] = (0.0, 0.0),
+    offsets: NDArray[np.float64] = OFFSETS, splits: NDArray[np.float64] = SPLITS,
+) -> list[NDArray[np.float64]]:
+    """The paper's sweeps: baseline, offset A (B held at ``b_at``), offset B (A held at
+    ``a_at``), gain split (offsets held at ``split_at``); as (offset A, offset B, split)."""
+    design = [np.zeros(3)]
+    design += [np.array([o, b_at, 0.0]) for o in offsets]
+    design += [np.array([a_at, o, 0.0]) for o in offsets]
+    design += [np.array([split_at[0], split_at[1], s]) for s in splits]
+    return design
+
+
+def phasors(u: NDArray[np.float64]) -> tuple[complex, complex]:
+    d = u - OPTIMUM
+    h1 = complex(J1 @ d)
+    return h1, complex(J2 @ d) + MIXING * h1 * h1
+
+
+Response = Callable[[NDArray[np.float64]], tuple[complex, complex]]
+
+
+def points(
+    design: Iterable[NDArray[np.float64]], seed: int, *, response: Response = phasors,
+    noise_var: float = NOISE_VAR,
+) -> list[TrimPoint]:
+    """Measured trim points: the model plus complex noise of variance ``noise_var``."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for u in design:
+        h1, h2 = response(u)
+        n = rng.normal(0.0, math.sqrt(noise_var / 2), 4)
+        out.append(
+            TrimPoint(trims_of(u), h1 + complex(n[0], n[1]), noise_var,
+                      h2 + complex(n[2], n[3]), noise_var)
+        )
+    return out
+
+
+def errors(trims: Trims) -> NDArray[np.float64]:
+    """(offset A, offset B, split) minus the optimum; the split is half the gain difference."""
+    split = (trims.gain_a - trims.gain_b) / 2
+    found = np.array([trims.offset_a_mA, trims.offset_b_mA, split], dtype=np.float64)
+    difference: NDArray[np.float64] = found - OPTIMUM
+    return difference
+
+
+# ------------------------------------------------------------------ phase-coherent
+
+
+def test_coherent_estimate_of_the_paper_design_is_near_the_optimum() -> None:
+    estimate = coherent_estimate(points(cross_design(), seed=0))
+    assert estimate.method is Method.COHERENT
+    err = errors(estimate.trims)
+    assert abs(err[0]) < 1.0 and abs(err[1]) < 1.0 and abs(err[2]) < 10.0, err
+    # The gain sum is kept: the split moves gain from one phase to the other.
+    assert estimate.trims.gain_a + estimate.trims.gain_b == pytest.approx(2 * GAIN_UNITY)
+    assert estimate.sigma.gain_a == estimate.sigma.gain_b
+    assert [a.order for a in estimate.affine] == [1, 2]
+    for fit in estimate.affine:
+        assert fit.quality.points_used == fit.quality.points_available == 34
+        assert len(fit.quality.residuals) == 2 * 34
+        assert fit.quality.r_squared > 0.99
+
+
+def test_coherent_sigma_matches_the_scatter_over_noise_seeds() -> None:
+    """Pull (estimate − truth)/σ over many noise draws: a std near 1 means σ is honest."""
+    pulls = []
+    for seed in range(200):
+        estimate = coherent_estimate(points(cross_design(), seed=seed))
+        sigma = np.array([estimate.sigma.offset_a_mA, estimate.sigma.offset_b_mA,
+                          estimate.sigma.gain_a])
+        pulls.append(errors(estimate.trims) / sigma)
+    pull = np.array(pulls)
+    spread = pull.std(axis=0)
+    assert np.all(spread > 0.5) and np.all(spread < 2.0), spread
+    assert np.all(np.abs(pull.mean(axis=0)) < 0.3), pull.mean(axis=0)
+
+
+def test_coherent_estimate_uses_the_mixing_term_when_h2_bends_with_h1() -> None:
+    estimate = coherent_estimate(points(cross_design(), seed=1))
+    h2 = next(a for a in estimate.affine if a.order == 2)
+    assert "mixing" in [t.value for t in h2.terms]
+
+
+def _saturating(limit: float) -> Response:
+    """A rotor that shakes too hard stops following the model: beyond ``limit`` m/s²
+    (300 mA of offset error) |H| grows at a third of the rate, its phase unchanged."""
+
+    def squash(h: complex) -> complex:
+        size = abs(h)
+        if size <= limit:
+            return h
+        return h * (limit + (size - limit) / 3) / size
+
+    def response(u: NDArray[np.float64]) -> tuple[complex, complex]:
+        h1, h2 = phasors(u)
+        return squash(h1), squash(h2)
+
+    return response
+
+
+def _plain_affine_null(pts: Sequence[TrimPoint]) -> NDArray[np.float64]:
+    """What a fit of every point, bent or not, would give: the null of one affine map each."""
+    u = np.array([[p.trims.offset_a_mA, p.trims.offset_b_mA, (p.trims.gain_a - p.trims.gain_b) / 2]
+                  for p in pts])
+    x = np.column_stack([np.ones(len(pts)), u])
+    c1 = np.linalg.lstsq(x, np.array([p.h1 for p in pts]), rcond=None)[0]
+    c2 = np.linalg.lstsq(x, np.array([p.h2 for p in pts]), rcond=None)[0]
+    rows = np.vstack([c1[1:].real, c1[1:].imag, c2[1:].real, c2[1:].imag])
+    rhs = -np.array([c1[0].real, c1[0].imag, c2[0].real, c2[0].imag])
+    null: NDArray[np.float64] = np.linalg.lstsq(rows, rhs, rcond=None)[0] - OPTIMUM
+    return null
+
+
+def test_far_points_that_saturate_do_not_bias_the_coherent_estimate() -> None:
+    """Tolerance: the acceptance's 3 mA and 30 gain units (a split of 30)."""
+    response = _saturating(limit=300 * abs(J1[0]))
+    worst = np.zeros(3)
+    for seed in range(5):
+        pts = points(cross_design(), seed=seed, response=response)
+        worst = np.maximum(worst, np.abs(errors(coherent_estimate(pts).trims)))
+        # The bend is real: taken at face value it moves the null by twice the tolerance.
+        naive = np.abs(_plain_affine_null(pts))
+        assert naive[0] > 6.0, naive
+    assert worst[0] <= 3.0 and worst[1] <= 3.0 and worst[2] <= 30.0, worst
+
+
+def test_far_points_that_saturate_do_not_bias_the_paper_offsets() -> None:
+    response = _saturating(limit=300 * abs(J1[0]))
+    design = cross_design(a_at=OPTIMUM[0], split_at=(OPTIMUM[0], OPTIMUM[1]))
+    for seed in range(5):
+        err = errors(paper_estimate(points(design, seed=seed, response=response)).trims)
+        assert abs(err[0]) <= 3.0 and abs(err[1]) <= 3.0 and abs(err[2]) <= 30.0, err
+
+
+def test_offsets_on_one_axis_only_are_refused() -> None:
+    design = [u for u in cross_design() if u[1] == 0.0]  # no offset B sweep
+    with pytest.raises(Unsupported, match="do not span both offsets"):
+        coherent_estimate(points(design, seed=0))
+
+
+def test_a_single_gain_split_is_refused() -> None:
+    design = [u for u in cross_design() if u[2] == 0.0]  # no gain sweep
+    with pytest.raises(Unsupported, match="single gain split"):
+        coherent_estimate(points(design, seed=0))
+    with pytest.raises(Unsupported, match="gain_split: too few points"):
+        paper_estimate(points(design, seed=0))
+
+
+def test_too_few_points_are_refused_by_both_methods() -> None:
+    design = [np.array([0.0, 0.0, 0.0]), np.array([100.0, 100.0, 500.0])]
+    with pytest.raises(Unsupported, match="need 3 non-collinear offset pairs"):
+        coherent_estimate(points(design, seed=0))
+    two_offsets = [np.array([o, 0.0, s]) for o in (-100.0, 100.0) for s in (0.0,)]
+    with pytest.raises(Unsupported, match="offset_a_mA: too few points"):
+        fit_parabola(points(two_offsets, seed=0), TrimAxis.OFFSET_A)
+
+
+# ------------------------------------------------------------------------- paper
+
+
+def test_paper_method_with_the_gain_sweep_at_optimal_offsets_finds_the_optimum() -> None:
+    """The paper's own order: sweep A, then B at A's optimum, then the split at both."""
+    design = cross_design(a_at=OPTIMUM[0], split_at=(OPTIMUM[0], OPTIMUM[1]))
+    estimate = paper_estimate(points(design, seed=3))
+    assert estimate.method is Method.PAPER
+    err = errors(estimate.trims)
+    assert abs(err[0]) < 2.0 and abs(err[1]) < 2.0 and abs(err[2]) < 20.0, err
+    assert not any("gain_split: swept with the offsets" in w for w in estimate.warnings)
+    assert estimate.trims.gain_a + estimate.trims.gain_b == pytest.approx(2 * GAIN_UNITY)
+
+
+def test_paper_estimate_reports_curves_fit_quality_and_residuals() -> None:
+    design = cross_design(a_at=OPTIMUM[0], split_at=(OPTIMUM[0], OPTIMUM[1]))
+    estimate = paper_estimate(points(design, seed=3))
+    assert [p.axis for p in estimate.parabolas] == list(TrimAxis)
+    assert [p.order for p in estimate.parabolas] == [1, 1, 2]
+    for fit in estimate.parabolas:
+        curve = fit.curve()
+        assert curve[0][0] == fit.swept[0] and curve[-1][0] == fit.swept[1]
+        # The curve is the fitted parabola: lowest at the vertex, at the floor.
+        xs = np.array([c[0] for c in curve])
+        ys = np.array([c[1] for c in curve])
+        assert ys.min() >= fit.floor - 1e-12
+        assert abs(xs[np.argmin(ys)] - fit.vertex) <= (xs[1] - xs[0])
+        assert fit.quality.r_squared > 0.95
+        assert len(fit.quality.residuals) == fit.quality.points_used == sum(fit.used)
+        assert len(fit.x) == len(fit.y) == len(fit.used) == fit.quality.points_available
+
+
+def test_paper_gain_split_swept_away_from_the_optimal_offsets_is_flagged() -> None:
+    estimate = paper_estimate(points(cross_design(), seed=3))
+    warning = [w for w in estimate.warnings if w.startswith("gain_split: swept with the offsets")]
+    assert len(warning) == 1
+    assert "(0, 0) mA" in warning[0]
+
+
+def test_a_flat_parabola_is_refused() -> None:
+    """Offset A that does not move H1 at all: nothing to locate a minimum in."""
+
+    def blind_to_a(u: NDArray[np.float64]) -> tuple[complex, complex]:
+        return phasors(np.array([OPTIMUM[0], u[1], u[2]]))
+
+    pts = points(cross_design(), seed=0, response=blind_to_a)
+    with pytest.raises(Unsupported, match="offset_a_mA: flat parabola"):
+        fit_parabola(pts, TrimAxis.OFFSET_A)
+    with pytest.raises(Unsupported, match="flat parabola"):
+        paper_estimate(pts)
+
+
+def test_a_minimum_outside_the_swept_range_is_refused() -> None:
+    design = cross_design(offsets=np.linspace(0.0, 500.0, 11))
+    with pytest.raises(Unsupported, match=r"offset_a_mA: the minimum -1\d\d\.\d lies outside"):
+        fit_parabola(points(design, seed=0), TrimAxis.OFFSET_A)
