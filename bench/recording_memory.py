@@ -8,12 +8,12 @@ benchmark harness.
 from __future__ import annotations
 
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+from bench.analysis_memory import peak_rss_kb
 from bench.record import BenchRecord, Goal
 from station.core import LoadKind
 from station.schedules import ScheduleName, SweepPlan, calibration_schedule
@@ -41,7 +41,8 @@ def _child(out: str) -> None:
     )
     (Path(out).parent / "truth").mkdir()
     record_schedule(request, schedule)
-    print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+    # Not ru_maxrss: on Linux a child inherits its parent's peak in it (see analysis_memory).
+    print(peak_rss_kb())
 
 
 def measure() -> list[BenchRecord]:
