@@ -294,16 +294,16 @@ def _analysis_tables(doc: dict[str, Any]) -> Group:
     head.add_column("± (1σ)", justify="right")
     for key, value in doc["trims"].items():
         head.add_row(key, f"{value:.1f}", f"{doc['uncertainty'][key]:.1f}")
-    points = Table(title="trim points (|H| in m/s², phase in degrees)")
-    for column in ("offset A", "offset B", "gain A", "gain B", "|H1|", "∠H1", "|H2|", "∠H2",
-                   "lost", "clipped"):
-        points.add_column(column, justify="right")
+    points = Table(title="trim points (offsets mA, |H| m/s², phase degrees)")
+    for column in ("off A", "off B", "gain A", "gain B", "|H1|", "∠H1", "|H2|", "∠H2",
+                   "lost", "clip"):
+        points.add_column(column, justify="right", no_wrap=True)
     for p in doc["conditions"][0]["points"]:
         t = p["trims"]
         points.add_row(
             f"{t['offset_a_mA']:.0f}", f"{t['offset_b_mA']:.0f}", f"{t['gain_a']:.0f}",
-            f"{t['gain_b']:.0f}", f"{p['h1']['magnitude']:.4f}", f"{p['h1']['phase_deg']:.0f}",
-            f"{p['h2']['magnitude']:.4f}", f"{p['h2']['phase_deg']:.0f}",
+            f"{t['gain_b']:.0f}", f"{p['h1']['magnitude']:.3f}", f"{p['h1']['phase_deg']:.0f}",
+            f"{p['h2']['magnitude']:.3f}", f"{p['h2']['phase_deg']:.0f}",
             str(p["samples_missing"]), str(p["samples_saturated"]),
         )
     notes = [Text(f"warning: {w}", style="yellow") for w in doc["warnings"]]
