@@ -19,23 +19,11 @@ from station.recording import (
     metadata_path_for,
     read_metadata,
 )
+from tests.metadata import icd_metadata
 
 
 def _metadata() -> RecordingMetadata:
-    return RecordingMetadata(
-        serial="SN123",
-        drive_node=1,
-        sensor_node=16,
-        sync_period_s=0.001,
-        microsteps_per_fullstep=256,
-        rotor_teeth=50,
-        rated_current_mA=1000,
-        sensor_lsb_mps2=2 * 9.80665 / 32768,
-        tangential_axis=Axis.X,
-        sensor_radius_m=0.1,
-        gear_ratio=0.142857,
-        extra={"schedule": "calibration"},
-    )
+    return icd_metadata(gear_ratio=0.142857, extra={"schedule": "calibration"})
 
 
 def _frames(cycles: int) -> list[can.Message]:

@@ -14,11 +14,10 @@ from numpy.typing import NDArray
 
 from station.analysis.reader import read_recording
 from station.analysis.timeline import Timeline
-from station.core import NOMINAL_TRIMS, Axis, LoadKind, Trims
+from station.core import NOMINAL_TRIMS, LoadKind, Trims
 from station.errors import ExitCode, InputError, RecordingError
 from station.recording import (
     LogFormat,
-    RecordingMetadata,
     metadata_path_for,
     read_metadata,
     write_json_atomically,
@@ -26,6 +25,7 @@ from station.recording import (
 from station.schedules import Hold, Phase, Schedule, ScheduleName, velocity_for
 from station.serials import parse_serial
 from station.sim.record import SimRecordRequest, record_schedule
+from tests.metadata import icd_metadata
 
 # Hand-written from ICD.md, independent of the reader and the devices.
 SYNC = 0x080
@@ -220,19 +220,7 @@ def _rank_ambiguous(path: Path, cob: int, samples: int) -> NDArray[np.bool_]:
 
 T0 = 1_700_000_000.0
 FRAME_GAP_S = 130e-6
-METADATA = RecordingMetadata(
-    serial="SN7",
-    drive_node=1,
-    sensor_node=16,
-    sync_period_s=0.001,
-    microsteps_per_fullstep=256,
-    rotor_teeth=50,
-    rated_current_mA=1000,
-    sensor_lsb_mps2=2 * 9.80665 / 32768,
-    tangential_axis=Axis.X,
-    sensor_radius_m=0.05,
-    gear_ratio=1.0,
-)
+METADATA = icd_metadata(serial="SN7", sensor_radius_m=0.05)
 
 
 @dataclass(frozen=True)

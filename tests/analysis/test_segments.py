@@ -28,8 +28,8 @@ from station.analysis.segments import (
     steady_segments,
 )
 from station.analysis.timeline import LossReport, Timeline, unwrap_int32
-from station.core import Axis, Trims
-from station.recording import RecordingMetadata
+from station.core import Trims
+from tests.metadata import icd_metadata
 
 MICROSTEPS = 256
 CYCLE = 4 * MICROSTEPS  # microsteps per electrical period
@@ -41,18 +41,11 @@ DISABLED = 0x0040  # "switch on disabled"
 NOMINAL = (0, 0, 10000, 10000)
 NOISE = 0.02  # m/s² per sample
 
-META = RecordingMetadata(
+META = icd_metadata(
     serial="SN42",
-    drive_node=1,
-    sensor_node=16,
     sync_period_s=PERIOD_S,
     microsteps_per_fullstep=MICROSTEPS,
-    rotor_teeth=50,
-    rated_current_mA=1000.0,
     sensor_lsb_mps2=8 * 9.80665 / 32768,
-    tangential_axis=Axis.X,
-    sensor_radius_m=0.1,
-    gear_ratio=1.0,
 )
 
 
