@@ -19,14 +19,17 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.canbus import SYNC_COUNTER_OVERFLOW
 from drivers.cia301 import SYNC_COB_ID, TPDO1_COB_BASE
-from station.analysis.reader import FRAMES_RECORDED_KEY, read_recording
-from station.analysis.timeline import (
-    PAYLOAD_BYTES,
-    SENSOR_COUNTER_MODULUS,
-    SYNC_COUNTER_MAX,
+from station.analysis.reader import read_recording
+from station.analysis.timeline import PAYLOAD_BYTES
+from station.core import SENSOR_COUNTER_MODULUS
+from station.recording import (
+    FRAMES_RECORDED_KEY,
+    log_format_for,
+    metadata_path_for,
+    write_json_atomically,
 )
-from station.recording import log_format_for, metadata_path_for, write_json_atomically
 
 _INT32_SPAN = 1 << 32
 
@@ -124,7 +127,7 @@ def shifted_payloads(
     ``position`` microsteps further on; every counter wraps as the ICD says."""
     out = data.copy()
     sync_counter = out[roles.sync, 0].astype(np.int64)
-    out[roles.sync, 0] = (sync_counter - 1 + samples) % SYNC_COUNTER_MAX + 1
+    out[roles.sync, 0] = (sync_counter - 1 + samples) % SYNC_COUNTER_OVERFLOW + 1
     sensor = out[roles.sensor]
     counter = sensor[:, 0:2].copy().view("<u2")[:, 0].astype(np.int64)
     sensor[:, 0:2] = (

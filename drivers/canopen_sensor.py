@@ -29,7 +29,7 @@ from drivers.canbus import (
 )
 from drivers.cia301 import TPDO1_COB_BASE
 from drivers.eds import DeviceKind, load_od
-from station.core import SENSOR_RANGES_G
+from station.core import SENSOR_COUNTER_MODULUS, SENSOR_RANGES_G
 from station.errors import DeviceStateError, InputError
 
 log = logging.getLogger(__name__)
@@ -44,7 +44,6 @@ class SensorObject(IntEnum):
 
 
 SAMPLE_FRAME_BYTES = 8
-COUNTER_MODULUS = 1 << 16
 SAMPLE_DTYPE = np.dtype([("counter", "<u2"), ("x", "<i2"), ("y", "<i2"), ("z", "<i2")])
 """TPDO1 layout: sample counter U16, then X, Y, Z as I16, little-endian."""
 DEFAULT_INITIAL_CAPACITY = 1 << 16
@@ -71,7 +70,7 @@ def count_lost_samples(counter: npt.NDArray[np.uint16]) -> int:
     """
     if counter.size < 2:
         return 0
-    steps = np.remainder(np.diff(counter.astype(np.int64)), COUNTER_MODULUS)
+    steps = np.remainder(np.diff(counter.astype(np.int64)), SENSOR_COUNTER_MODULUS)
     gaps = steps[steps != 0] - 1
     return int(gaps.sum())
 

@@ -14,6 +14,8 @@ SENSOR_RANGES_G = (2, 4, 8, 16)
 """Full-scale ranges of the acceleration sensor (ICD.md §3, object 0x2000)."""
 SATURATED_COUNTS = 32767
 """A saturated sample reads ±32767 (ICD.md §3), never -32768."""
+SENSOR_COUNTER_MODULUS = 1 << 16
+"""The sensor's sample counter (ICD.md §3, object 0x2010) is a U16 that wraps."""
 
 
 class Effect(StrEnum):

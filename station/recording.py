@@ -32,6 +32,10 @@ from station.errors import InputError, RecordingError
 
 RECORDING_FORMAT: Final = "hsm-recording/1"
 
+FRAMES_RECORDED_KEY: Final = "frames_recorded"
+"""Metadata key this writer adds: every frame it wrote, so that a reader catches a
+cut log even where the format has no end marker. Other benches may omit it."""
+
 # Time one 8-byte standard frame occupies at 1 Mbit/s with typical bit stuffing;
 # used to space simulated timestamps the way a real bus would.
 _FRAME_SPACING_S: Final = 130e-6
@@ -397,7 +401,7 @@ class RecordingWriter(can.Listener):
             self._stop_writer()
             os.replace(self._tmp, self.path)
             doc = self.metadata.to_json_dict()
-            doc.setdefault("frames_recorded", self.frames_written)
+            doc.setdefault(FRAMES_RECORDED_KEY, self.frames_written)
             write_json_atomically(metadata_path_for(self.path), doc)
         except OSError as exc:
             self._tmp.unlink(missing_ok=True)

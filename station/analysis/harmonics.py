@@ -12,6 +12,7 @@ white-noise formula would miss.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -43,6 +44,27 @@ class Harmonics:
 
     def var(self, order: int) -> float:
         return float(self.variance[order - 1])
+
+
+def period_phasors(
+    values: NDArray[np.float64],
+    present: NDArray[np.bool_],
+    angle: NDArray[np.float64],
+    samples_per_period: float,
+    orders: Sequence[int],
+) -> NDArray[np.complex128]:
+    """(periods, orders): 2/n·Σ values·exp(−j·k·angle) over each whole period.
+
+    ``values`` is zero where a sample is not ``present``; n counts those that
+    are. A remainder shorter than a period joins the last one.
+    """
+    periods = int(values.size // samples_per_period)
+    starts = np.round(np.arange(periods) * samples_per_period).astype(np.intp)
+    counts = np.maximum(np.add.reduceat(present.astype(np.float64), starts), 1.0)
+    out = np.empty((periods, len(orders)), dtype=np.complex128)
+    for j, k in enumerate(orders):
+        out[:, j] = 2.0 * np.add.reduceat(values * np.exp(-1j * k * angle), starts) / counts
+    return out
 
 
 def _design(angle: NDArray[np.float64], orders: int) -> NDArray[np.float64]:
@@ -89,14 +111,9 @@ def demodulate(
         # period's phasor; the segment's phasor averages `periods` of them.
         r = np.zeros(signal.size)
         r[ok] = residual
-        counts = np.zeros(signal.size)
-        counts[ok] = 1.0
-        edges = np.round(np.arange(periods) * samples_per_period).astype(np.intp)
-        per_count = np.maximum(np.add.reduceat(counts, edges), 1.0)
-        for k in range(1, fitted + 1):
-            z = 2.0 * np.add.reduceat(r * np.exp(-1j * k * angle), edges) / per_count
-            scatter = float(np.sum(np.abs(z) ** 2)) / (periods * (periods - 1))
-            variance[k - 1] = max(variance[k - 1], scatter)
+        z = period_phasors(r, ok, angle, samples_per_period, range(1, fitted + 1))
+        scatter = np.sum(np.abs(z) ** 2, axis=0) / (periods * (periods - 1))
+        variance[:fitted] = np.maximum(variance[:fitted], scatter)
     return Harmonics(
         phasors=phasors,
         variance=variance,

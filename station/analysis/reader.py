@@ -27,11 +27,13 @@ from numpy.typing import NDArray
 from drivers.cia301 import SYNC_COB_ID, TPDO1_COB_BASE, TPDO2_COB_BASE
 from station.analysis.timeline import PAYLOAD_BYTES, FrameKind, Timeline, build_timeline
 from station.errors import RecordingError
-from station.recording import LogFormat, RecordingMetadata, log_format_for, read_metadata
-
-FRAMES_RECORDED_KEY: Final = "frames_recorded"
-"""Metadata key our writer adds: every frame it wrote, so a cut log is caught
-even where the format has no end marker. Other benches may omit it."""
+from station.recording import (
+    FRAMES_RECORDED_KEY,
+    LogFormat,
+    RecordingMetadata,
+    log_format_for,
+    read_metadata,
+)
 
 ASC_END_MARKER: Final = "end triggerblock"
 """Last line of a complete Vector ASC log (case as Vector and python-can vary)."""

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from station.analysis.harmonics import period_phasors
 from station.analysis.timeline import Timeline
 from station.core import Trims
 
@@ -217,23 +218,6 @@ def _fit_line(
     return float(ref + intercept), float(slope)
 
 
-def _period_phasors(
-    signal: NDArray[np.float64], ok: NDArray[np.bool_], angle: NDArray[np.float64],
-    samples_per_period: float, orders: tuple[int, ...],
-) -> NDArray[np.complex128]:
-    """(periods, orders) crude per-period phasors, for judging settling only."""
-    periods = int(signal.size // samples_per_period)
-    edges = np.round(np.arange(periods + 1) * samples_per_period).astype(np.intp)
-    out = np.zeros((periods, len(orders)), dtype=np.complex128)
-    s = np.where(ok, signal - np.mean(signal[ok]), 0.0)
-    counts = np.add.reduceat(ok.astype(np.float64), edges[:-1])[:periods]
-    counts = np.maximum(counts, 1.0)
-    for j, k in enumerate(orders):
-        z = s * np.exp(-1j * k * angle)
-        out[:, j] = 2.0 * np.add.reduceat(z, edges[:-1])[:periods] / counts
-    return out
-
-
 def _complex_median(z: NDArray[np.complex128], axis: int = 0) -> NDArray[np.complex128]:
     return np.median(z.real, axis=axis) + 1j * np.median(z.imag, axis=axis)
 
@@ -315,7 +299,9 @@ def steady_segments(
             n = np.arange(b - a, dtype=np.float64)
             angle = (2 * math.pi / cycle) * np.mod(p0 + slope * n, cycle)
             if settle_periods is None:
-                phasors = _period_phasors(signal[a:b], ok[a:b], angle, spp, (1, 2))
+                window, present = signal[a:b], ok[a:b]
+                centred = np.where(present, window - np.mean(window[present]), 0.0)
+                phasors = period_phasors(centred, present, angle, spp, (1, 2))
                 first = settled_period(phasors)
                 if first is None:
                     held = (b - a) / spp

@@ -14,7 +14,8 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from station.core import SATURATED_COUNTS
+from drivers.canbus import SYNC_COUNTER_OVERFLOW
+from station.core import SATURATED_COUNTS, SENSOR_COUNTER_MODULUS
 from station.errors import RecordingError
 from station.recording import RecordingMetadata
 
@@ -74,12 +75,6 @@ class FrameKind(IntEnum):
     DRIVE_TRIMS = 3  # drive TPDO2: the trims in effect
 
 
-SYNC_COUNTER_MAX: Final = 240
-"""Object 0x1019 (ICD.md §1): the SYNC counter runs 1..240, then 1 again."""
-
-SENSOR_COUNTER_MODULUS: Final = 1 << 16
-"""Object 0x2010 (ICD.md §3) is a U16 that wraps."""
-
 PAYLOAD_BYTES: Final = 8
 """Every ICD TPDO is 8 bytes; a SYNC's one counter byte sits in column 0."""
 
@@ -124,7 +119,7 @@ def build_timeline(
         raise ValueError(f"payloads must be ({kinds.shape[0]}, {PAYLOAD_BYTES}) bytes")
     sync_rows = np.flatnonzero(kinds == FrameKind.SYNC)
     counters = payloads[sync_rows, 0].astype(np.int64)
-    valid_counter = (counters >= 1) & (counters <= SYNC_COUNTER_MAX)
+    valid_counter = (counters >= 1) & (counters <= SYNC_COUNTER_OVERFLOW)
     malformed = frames_malformed + int(np.count_nonzero(~valid_counter))
     if not valid_counter.all():
         # A SYNC with an impossible counter is dropped; its TPDOs then read as
@@ -135,7 +130,7 @@ def build_timeline(
 
     # Samples between SYNCs seen, 1..240 from the counter alone; the sensor
     # counter then adds the whole turns of 240 the SYNC counter cannot show.
-    periods = (np.diff(counters) - 1) % SYNC_COUNTER_MAX + 1
+    periods = (np.diff(counters) - 1) % SYNC_COUNTER_OVERFLOW + 1
     sync_samples = np.concatenate(([0], np.cumsum(periods)))
     del periods
     sensor_rows, sensor_group, sensor_rank, early = _ranked(kinds, sync_rows, FrameKind.SENSOR)
@@ -279,8 +274,8 @@ def _gap_corrections(
     before SYNC j. Turns only accumulate, so the estimate is a running maximum.
     """
     evidence = np.zeros(tentative.size, dtype=np.int64)
-    turns = (first_sensor - tentative[first_group]) // SYNC_COUNTER_MAX
-    evidence[first_group] = np.maximum(turns, 0) * SYNC_COUNTER_MAX
+    turns = (first_sensor - tentative[first_group]) // SYNC_COUNTER_OVERFLOW
+    evidence[first_group] = np.maximum(turns, 0) * SYNC_COUNTER_OVERFLOW
     evidence[0] = 0  # sample 0 is the first SYNC by definition
     return np.maximum.accumulate(evidence, out=evidence)
 

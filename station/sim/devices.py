@@ -41,6 +41,7 @@ from drivers.eds import PERSISTED, DeviceKind, load_od
 from station.core import (
     GAIN_UNITY,
     NOMINAL_TRIMS,
+    SENSOR_COUNTER_MODULUS,
     SENSOR_RANGES_G,
     Trims,
 )
@@ -120,8 +121,6 @@ _MAX_TPDOS = 512
 COB_ID_INVALID = 0x8000_0000
 _COB_ID_RTR_OFF = 0x4000_0000
 _CAN_ID_MASK = 0x7FF
-
-SAMPLE_COUNTER_MODULO = 1 << 16
 
 _STRUCT_CODES = {
     datatypes.INTEGER8: "b",
@@ -804,7 +803,7 @@ class SimSensor(SimNode):
         """SYNC: take the sample the plant produced for this instant (already
         quantised and saturated at ±32767 by the sensor model)."""
         values = self.values
-        values[Obj.SAMPLE_COUNTER] = (int(values[Obj.SAMPLE_COUNTER]) + 1) % SAMPLE_COUNTER_MODULO
+        values[Obj.SAMPLE_COUNTER] = (int(values[Obj.SAMPLE_COUNTER]) + 1) % SENSOR_COUNTER_MODULUS
         values[Obj.ACCEL_X], values[Obj.ACCEL_Y], values[Obj.ACCEL_Z] = counts
 
     def reset_application(self) -> None:
