@@ -17,6 +17,8 @@ from bench import (
     analysis_memory,
     analysis_speed,
     bench_speed,
+    calibration,
+    history_speed,
     plant_speed,
     recording_memory,
 )
@@ -44,6 +46,8 @@ def _measures(minute: MinuteRecording) -> dict[str, Measure]:
         # The analysis benches share one recording, made when first needed.
         "analysis_speed": lambda: analysis_speed.measure(minute),
         "analysis_memory": lambda: analysis_memory.measure(minute),
+        "history_speed": history_speed.measure,
+        "calibration": calibration.measure,
     }
 
 

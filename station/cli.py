@@ -8,11 +8,16 @@ JSON document with ``--json``), logs and progress to stderr. Exit codes:
 
 from __future__ import annotations
 
+import csv
 import json
 import logging
+import math
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import asdict
+from datetime import UTC, datetime, time
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -27,11 +32,32 @@ from station import __version__
 from station.analysis.pipeline import AnalysisOptions, MethodChoice, analyze
 from station.analysis.reader import read_recording
 from station.analysis.report import analysis_dict
+from station.benches import load_bench
 from station.core import Effect, LoadKind
 from station.errors import ExitCode, InputError, StationError
+from station.procedure import Step
+from station.recipes import available_recipes, load_recipe
+from station.run_report import CSV_COLUMNS, run_csv_row, run_dict
+from station.runs import Run, Verdict, utc_iso
 from station.schedules import Hold, ScheduleName
 from station.serials import parse_serial
+from station.service import (
+    Calibration,
+    RecipeStatistics,
+    Station,
+    Verification,
+    calibrate,
+    database_path,
+    default_operator,
+    history,
+    query,
+    recalibrate,
+    statistics,
+    verify,
+)
 from station.sim.record import SimRecordRequest, describe_unit, record_simulation
+from station.store import RunFilter
+from station.views import run_view, runs_table, stats_view, verify_view
 
 log = logging.getLogger("station")
 
@@ -316,6 +342,304 @@ def _analysis_tables(doc: dict[str, Any]) -> Group:
         )
     )
     return Group(head, points, *notes)
+
+
+DbOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--db", help="Results database (default: $STATION_DB, else $STATION_HOME/station.db)."
+    ),
+]
+BenchOption = Annotated[
+    str | None,
+    typer.Option("--bench", help="'sim' (default, also $STATION_BENCH) or a bench file (TOML)."),
+]
+OperatorOption = Annotated[
+    str | None,
+    typer.Option("--operator", help="Who runs the station (default: $STATION_OPERATOR or login)."),
+]
+RecipeOption = Annotated[
+    str | None,
+    typer.Option("--recipe", help="Recipe name (recipes/NAME.toml) or path; default: 'default'."),
+]
+
+
+class OutputFormat(StrEnum):
+    TABLE = "table"
+    JSON = "json"
+    CSV = "csv"
+
+
+FormatOption = Annotated[
+    OutputFormat, typer.Option("--format", help="table for people, json or csv for machines.")
+]
+
+
+def _station(db: Path | None, bench: str | None, operator: str | None) -> Station:
+    return Station(database_path(db), load_bench(bench), operator or default_operator())
+
+
+class _OperatorDisplay:
+    """Rich progress on stderr: each step as a line, the current hold batch as a bar."""
+
+    def __init__(self, progress: Progress, enabled: bool) -> None:
+        self._progress = progress
+        self._task = progress.add_task("", total=None, phase="")
+        self._enabled = enabled
+
+    def step(self, step: Step, detail: str) -> None:
+        if self._enabled:
+            self._progress.console.print(f"[bold]{step.value}[/] {detail}", highlight=False)
+        self._progress.update(self._task, description=step.value, completed=0, total=None,
+                              phase=detail)
+
+    def progress(self, done: int, total: int) -> None:
+        self._progress.update(self._task, completed=done, total=total)
+
+
+@contextmanager
+def _operator_display(enabled: bool) -> Iterator[_OperatorDisplay]:
+    columns = (TextColumn("[bold]{task.description}"), BarColumn(),
+               TextColumn("{task.fields[phase]}"), TimeElapsedColumn())
+    with Progress(*columns, console=stderr, transient=True, disable=not enabled) as progress:
+        yield _OperatorDisplay(progress, enabled)
+
+
+def _calibration_doc(result: Calibration) -> dict[str, Any]:
+    doc = run_dict(result.run)
+    if result.previous is not None or result.run.kind.value == "recalibrate":
+        previous = result.previous
+        doc["previous_trims"] = (
+            previous.trims_after.as_dict()
+            if previous is not None and previous.trims_after is not None else None
+        )
+        doc["previous_run_id"] = previous.run_id if previous is not None else None
+        doc["drift"] = result.drift.as_dict() if result.drift is not None else None
+    return doc
+
+
+def _finish_run(result: Calibration, as_json: bool) -> int:
+    doc = _calibration_doc(result)
+    _emit(doc, as_json, human=run_view(doc))
+    verdict = result.run.verdict or Verdict.ERROR
+    return int(verdict.exit_code)
+
+
+@app.command("calibrate")
+def calibrate_command(
+    serial: Annotated[str, typer.Argument(help="Serial label of the unit on the bench: SN123.")],
+    recipe: RecipeOption = None,
+    bench: BenchOption = None,
+    db: DbOption = None,
+    operator: OperatorOption = None,
+    as_json: JsonOption = False,
+) -> int:
+    """Calibrate one unit: sweep, estimate, store, verify, record (exit 0 pass, 1 fail, 3 error)."""
+    station = _station(db, bench, operator)
+    with _operator_display(not as_json) as display:
+        result = calibrate(station, serial, recipe, observer=display)
+    return _finish_run(result, as_json)
+
+
+@app.command("recalibrate")
+def recalibrate_command(
+    serial: Annotated[str, typer.Argument(help="Serial label of the unit, e.g. SN123.")],
+    reason: Annotated[
+        str, typer.Option("--reason", help="Why the unit is recalibrated (recorded).")
+    ],
+    force: Annotated[
+        bool, typer.Option("--force", help="Calibrate even though the unit has no record here.")
+    ] = False,
+    recipe: Annotated[
+        str | None,
+        typer.Option("--recipe", help="Recipe name or path; default: the unit's last one."),
+    ] = None,
+    bench: BenchOption = None,
+    db: DbOption = None,
+    operator: OperatorOption = None,
+    as_json: JsonOption = False,
+) -> int:
+    """Field service: recalibrate a unit and show how far its trims drifted."""
+    station = _station(db, bench, operator)
+    with _operator_display(not as_json) as display:
+        result = recalibrate(station, serial, reason, recipe_name=recipe, force=force,
+                             observer=display)
+    return _finish_run(result, as_json)
+
+
+def _verify_doc(result: Verification) -> dict[str, Any]:
+    r = result.record
+    cal = result.calibration_record
+    return {
+        "serial": r.serial,
+        "match": r.match,
+        "drive_trims": r.drive_trims.as_dict(),
+        "recorded_trims": r.recorded_trims.as_dict() if r.recorded_trims is not None else None,
+        "recorded_run_id": r.recorded_run_id,
+        "recorded_verdict": result.recorded_verdict.value if result.recorded_verdict else None,
+        "calibration_record": {
+            "calibrated_at": (
+                utc_iso(datetime.fromtimestamp(cal.calibrated_at, UTC))
+                if cal.calibrated_at else None
+            ),
+            "station_id": cal.station_id,
+            "count": cal.count,
+        },
+        "verified_at": utc_iso(r.verified_at),
+        "station": r.station_id,
+    }
+
+
+@app.command("verify")
+def verify_command(
+    serial: Annotated[str, typer.Argument(help="Serial label of the unit, e.g. SN123.")],
+    bench: BenchOption = None,
+    db: DbOption = None,
+    operator: OperatorOption = None,
+    as_json: JsonOption = False,
+) -> int:
+    """Compare the trims stored in the drive with the last ones recorded (exit 0 match, 1 not)."""
+    result = verify(_station(db, bench, operator), serial)
+    doc = _verify_doc(result)
+    _emit(doc, as_json, human=verify_view(doc))
+    return int(ExitCode.OK if result.match else ExitCode.FAILED_LIMIT)
+
+
+def _print_runs(runs: Sequence[Run], output: OutputFormat, title: str, *,
+                one_unit: bool = False) -> None:
+    docs = [run_dict(r) for r in runs]
+    if output is OutputFormat.JSON:
+        _emit(docs, True)
+    elif output is OutputFormat.CSV:
+        writer = csv.writer(sys.stdout, lineterminator="\n")
+        writer.writerow(CSV_COLUMNS)
+        writer.writerows(run_csv_row(r) for r in runs)
+    else:
+        stdout.print(runs_table(docs, title, one_unit=one_unit))
+
+
+def _output(output: OutputFormat, as_json: bool) -> OutputFormat:
+    return OutputFormat.JSON if as_json else output
+
+
+@app.command("history")
+def history_command(
+    serial: Annotated[str, typer.Argument(help="Serial label of the unit, e.g. SN123.")],
+    db: DbOption = None,
+    output: FormatOption = OutputFormat.TABLE,
+    as_json: JsonOption = False,
+) -> None:
+    """Every run of one unit, oldest first."""
+    runs = history(database_path(db), serial)
+    _print_runs(runs, _output(output, as_json), f"history of {parse_serial(serial)}",
+                one_unit=True)
+
+
+def _moment(text: str | None, *, end_of_day: bool) -> datetime | None:
+    """ISO 8601 date or date-time; naive times are UTC; a bare 'until' date includes its day."""
+    if text is None:
+        return None
+    try:
+        moment = datetime.fromisoformat(text)
+    except ValueError:
+        raise InputError(f"{text!r} is not an ISO 8601 date or date-time") from None
+    if end_of_day and len(text) == 10:
+        moment = datetime.combine(moment.date(), time.max)
+    return moment.replace(tzinfo=UTC) if moment.tzinfo is None else moment.astimezone(UTC)
+
+
+SinceOption = Annotated[
+    str | None, typer.Option("--since", help="Runs started at or after (ISO 8601, UTC if naive).")
+]
+UntilOption = Annotated[
+    str | None, typer.Option("--until", help="Runs started at or before (a date includes its day).")
+]
+RecipeFilter = Annotated[str | None, typer.Option("--recipe", help="Recipe name.")]
+VerdictFilter = Annotated[Verdict | None, typer.Option("--verdict", help="Verdict.")]
+StationFilter = Annotated[int | None, typer.Option("--station", help="Station ID.")]
+SerialFilter = Annotated[str | None, typer.Option("--serial", help="One unit.")]
+LimitOption = Annotated[
+    int | None, typer.Option("--limit", help="Only the newest N runs.", min=0)
+]
+
+
+def _filter(since: str | None, until: str | None, recipe: str | None, verdict: Verdict | None,
+            station: int | None, serial: str | None, limit: int | None) -> RunFilter:
+    return RunFilter(
+        serial=parse_serial(serial).label if serial is not None else None,
+        since=_moment(since, end_of_day=False),
+        until=_moment(until, end_of_day=True),
+        recipe=recipe,
+        verdict=verdict,
+        station_id=station,
+        limit=limit,
+    )
+
+
+@app.command("query")
+def query_command(
+    since: SinceOption = None,
+    until: UntilOption = None,
+    recipe: RecipeFilter = None,
+    verdict: VerdictFilter = None,
+    station: StationFilter = None,
+    serial: SerialFilter = None,
+    limit: LimitOption = None,
+    db: DbOption = None,
+    output: FormatOption = OutputFormat.TABLE,
+    as_json: JsonOption = False,
+) -> None:
+    """Runs across units, filtered by date, recipe, verdict, station; oldest first."""
+    run_filter = _filter(since, until, recipe, verdict, station, serial, limit)
+    _print_runs(query(database_path(db), run_filter), _output(output, as_json), "runs")
+
+
+def _stats_doc(s: RecipeStatistics) -> dict[str, Any]:
+    return {
+        "recipe": s.recipe.name,
+        "recipe_version": s.recipe.version,
+        "recipe_sha256": s.recipe.sha256,
+        "runs": s.runs,
+        "verdicts": {v.value: n for v, n in s.verdicts.items()},
+        "quantities": {
+            name: {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                   for k, v in asdict(c).items()}
+            for name, c in s.quantities.items()
+        },
+    }
+
+
+@app.command("stats")
+def stats_command(
+    since: SinceOption = None,
+    until: UntilOption = None,
+    recipe: RecipeFilter = None,
+    station: StationFilter = None,
+    db: DbOption = None,
+    as_json: JsonOption = False,
+) -> None:
+    """Per recipe version: mean, standard deviation and Cpk of trims and residual ripple."""
+    run_filter = _filter(since, until, recipe, None, station, None, None)
+    docs = [_stats_doc(s) for s in statistics(database_path(db), run_filter)]
+    _emit(docs, as_json, human=stats_view(docs))
+
+
+@app.command("recipes")
+def recipes_command(as_json: JsonOption = False) -> None:
+    """The shipped recipes: name, version, method, operating point."""
+    docs: list[dict[str, Any]] = []
+    for name in available_recipes():
+        r = load_recipe(name)
+        docs.append({"name": r.name, "version": r.version, "method": r.method.value,
+                     "description": r.description, "electrical_hz": r.motion.electrical_hz,
+                     "amplitude_mA": r.motion.amplitude_mA, "sha256": r.sha256})
+    table = Table(title="recipes")
+    for column in ("name", "version", "method", "operating point", "description"):
+        table.add_column(column)
+    for d in docs:
+        table.add_row(d["name"], d["version"], d["method"],
+                      f"{d['amplitude_mA']} mA, {d['electrical_hz']:g} Hz", d["description"])
+    _emit(docs, as_json, human=table)
 
 
 @app.command("version")

@@ -65,3 +65,25 @@ class DeviceStateError(DeviceError):
 
 class IdentityMismatch(DeviceError):
     """The unit on the bench is not the unit the operator named."""
+
+
+class ProductMismatch(DeviceError):
+    """The unit is not the product the recipe was written for (rating, microstepping)."""
+
+
+class SelfCheckFailed(DeviceError):
+    """The acceleration sensor failed its standstill self-check: nothing it says can be trusted."""
+
+
+class DatabaseError(StationError):
+    """The results database could not be opened, migrated, read or written.
+
+    A station that cannot record its runs must stop: the message names the file
+    so the technician knows which database (and which disk) to look at.
+    """
+
+    exit_code = ExitCode.STATION
+
+    def __init__(self, database: str, message: str) -> None:
+        super().__init__(f"database {database}: {message}")
+        self.database = database

@@ -35,6 +35,8 @@ class Phase(StrEnum):
     STEP_OFFSET_A = "step_offset_a"
     STEP_OFFSET_B = "step_offset_b"
     STEP_GAIN = "step_gain"
+    SWEEP_STAR = "sweep_star"
+    VERIFY = "verify"
     STOP = "stop"
 
 
@@ -84,7 +86,8 @@ def cycles_for(seconds: float, electrical_hz: float, sync_period_s: float) -> in
     return max(1, round(periods * period / sync_period_s))
 
 
-def _linspace_int(start: int, stop: int, points: int) -> list[int]:
+def linspace_int(start: int, stop: int, points: int) -> list[int]:
+    """Evenly spaced integers from start to stop (the drive takes whole mA and 1/10000)."""
     if points == 1:
         return [round((start + stop) / 2)]
     return [round(start + (stop - start) * i / (points - 1)) for i in range(points)]
@@ -126,7 +129,7 @@ def calibration_schedule(
         Hold(Phase.STANDSTILL, 0, amp, NOMINAL_TRIMS, still),
         Hold(Phase.BASELINE, v, amp, NOMINAL_TRIMS, dwell),
     ]
-    offsets = _linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points)
+    offsets = linspace_int(-plan.offset_span_mA, plan.offset_span_mA, plan.offset_points)
     for phase, field in (
         (Phase.SWEEP_OFFSET_A, "offset_a_mA"),
         (Phase.SWEEP_OFFSET_B, "offset_b_mA"),
@@ -135,7 +138,7 @@ def calibration_schedule(
             Hold(phase, v, amp, replace(NOMINAL_TRIMS, **{field: offset}), dwell)
             for offset in offsets
         )
-    for gain_a in _linspace_int(plan.gain_low, plan.gain_high, plan.gain_points):
+    for gain_a in linspace_int(plan.gain_low, plan.gain_high, plan.gain_points):
         trims = replace(NOMINAL_TRIMS, gain_a=gain_a, gain_b=2 * GAIN_UNITY - gain_a)
         holds.append(Hold(Phase.SWEEP_GAIN, v, amp, trims, dwell))
     holds.append(Hold(Phase.STOP, 0, amp, NOMINAL_TRIMS, still))

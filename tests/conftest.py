@@ -1,7 +1,8 @@
 """Guards every test: private station home, and nothing left running.
 
-A calibration station that leaks a bus handle or a notifier thread per run
-falls over after a shift; so a test that leaves one behind fails here.
+A calibration station that leaks a bus handle, a notifier thread or a database
+connection per run falls over after a shift; so a test that leaves one behind
+fails here.
 """
 
 from __future__ import annotations
@@ -12,10 +13,12 @@ import os
 # save. Set before numpy is first imported (pytest imports conftest first).
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import sqlite3
 import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import can.interfaces.virtual as virtual_bus
 import pytest
@@ -38,11 +41,32 @@ def station_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     return home
 
 
+def _is_open(connection: sqlite3.Connection) -> bool:
+    try:
+        connection.total_changes  # noqa: B018 - any use of a closed connection raises
+    except sqlite3.ProgrammingError:
+        return False
+    return True
+
+
 @pytest.fixture(autouse=True)
-def nothing_left_open() -> Iterator[None]:
+def nothing_left_open(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     threads_before = set(threading.enumerate())
     queues_before = _open_virtual_queues()
+    connections: list[sqlite3.Connection] = []
+    connect = sqlite3.connect
+
+    def tracked(*args: Any, **kwargs: Any) -> sqlite3.Connection:
+        connection: sqlite3.Connection = connect(*args, **kwargs)
+        connections.append(connection)
+        return connection
+
+    monkeypatch.setattr(sqlite3, "connect", tracked)
     yield
+    left = [c for c in connections if _is_open(c)]
+    for connection in left:
+        connection.close()
+    assert not left, f"{len(left)} SQLite connection(s) left open"
     deadline = time.monotonic() + _GRACE_S
     while True:
         leaked = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]

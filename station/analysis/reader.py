@@ -24,8 +24,14 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.cia301 import SYNC_COB_ID, TPDO1_COB_BASE, TPDO2_COB_BASE
-from station.analysis.timeline import PAYLOAD_BYTES, FrameKind, Timeline, build_timeline
+from drivers.cia301 import SYNC_COB_ID
+from station.analysis.timeline import (
+    PAYLOAD_BYTES,
+    FrameKind,
+    Timeline,
+    build_timeline,
+    icd_frames,
+)
 from station.errors import RecordingError
 from station.recording import (
     FRAMES_RECORDED_KEY,
@@ -39,7 +45,6 @@ ASC_END_MARKER: Final = "end triggerblock"
 """Last line of a complete Vector ASC log (case as Vector and python-can vary)."""
 
 _TAIL_BYTES = 4096
-_SYNC_BYTES = 1
 
 # python-can's BLF writer puts a placeholder header (its own size, no objects)
 # first and fills it in only when it closes the file.
@@ -215,11 +220,10 @@ def _scan(
     stamps = array("d")
     sync_bytes = bytearray()
     tpdo_bytes = bytearray()
+    buffers = {FrameKind.SYNC: sync_bytes}
     wanted: dict[int, tuple[int, int, bytearray]] = {
-        SYNC_COB_ID: (FrameKind.SYNC, _SYNC_BYTES, sync_bytes),
-        TPDO1_COB_BASE + metadata.sensor_node: (FrameKind.SENSOR, PAYLOAD_BYTES, tpdo_bytes),
-        TPDO1_COB_BASE + metadata.drive_node: (FrameKind.DRIVE_STATUS, PAYLOAD_BYTES, tpdo_bytes),
-        TPDO2_COB_BASE + metadata.drive_node: (FrameKind.DRIVE_TRIMS, PAYLOAD_BYTES, tpdo_bytes),
+        cob_id: (kind, size, buffers.get(kind, tpdo_bytes))
+        for cob_id, (kind, size) in icd_frames(metadata.drive_node, metadata.sensor_node).items()
     }
     lookup = wanted.get
     add_kind = kinds.append

@@ -26,14 +26,7 @@ def _phasor(h: complex, variance: float) -> dict[str, float]:
 
 
 def _quality(q: FitQuality) -> dict[str, Any]:
-    return {
-        "r_squared": q.r_squared,
-        "chi2_reduced": q.chi2_reduced if math.isfinite(q.chi2_reduced) else None,
-        "dof": q.dof,
-        "points_used": q.points_used,
-        "points_available": q.points_available,
-        "residuals": list(q.residuals),
-    }
+    return {**_figures(q), "residuals": list(q.residuals)}
 
 
 def _parabola(p: ParabolaFit) -> dict[str, Any]:
@@ -74,6 +67,30 @@ def estimate_dict(e: TrimEstimate) -> dict[str, Any]:
         "parabolas": [_parabola(p) for p in e.parabolas],
         "affine": [_affine(a) for a in e.affine],
         "warnings": list(e.warnings),
+    }
+
+
+def fit_summary(e: TrimEstimate) -> dict[str, Any]:
+    """The figures of merit of an estimate, small enough to keep with every run.
+
+    The curves and residuals stay in the run's recording, which can be
+    analysed again; a results database keeps only what QA filters and plots.
+    """
+    fits: list[dict[str, Any]] = []
+    for p in e.parabolas:
+        fits.append({"fit": f"parabola {p.axis.value}", **_figures(p.quality)})
+    for a in e.affine:
+        fits.append({"fit": f"H{a.order} affine", **_figures(a.quality)})
+    return {"method": e.method.value, "fits": fits}
+
+
+def _figures(q: FitQuality) -> dict[str, Any]:
+    return {
+        "r_squared": q.r_squared,
+        "chi2_reduced": q.chi2_reduced if math.isfinite(q.chi2_reduced) else None,
+        "dof": q.dof,
+        "points_used": q.points_used,
+        "points_available": q.points_available,
     }
 
 

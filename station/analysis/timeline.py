@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.canbus import SYNC_COUNTER_OVERFLOW
+from drivers.cia301 import SYNC_COB_ID, TPDO1_COB_BASE, TPDO2_COB_BASE
 from station.core import SATURATED_COUNTS, SENSOR_COUNTER_MODULUS
 from station.errors import RecordingError
 from station.recording import RecordingMetadata
@@ -77,6 +78,23 @@ class FrameKind(IntEnum):
 
 PAYLOAD_BYTES: Final = 8
 """Every ICD TPDO is 8 bytes; a SYNC's one counter byte sits in column 0."""
+
+SYNC_BYTES: Final = 1
+"""A SYNC carries one byte: its counter (ICD.md §1, overflow 240)."""
+
+
+def icd_frames(drive_node: int, sensor_node: int) -> dict[int, tuple[FrameKind, int]]:
+    """COB-ID to (kind, payload length) of every frame a timeline is built from.
+
+    One table for the offline reader and the live capture, so a calibration on
+    the bench and ``station analyze`` of its recording classify frames alike.
+    """
+    return {
+        SYNC_COB_ID: (FrameKind.SYNC, SYNC_BYTES),
+        TPDO1_COB_BASE + sensor_node: (FrameKind.SENSOR, PAYLOAD_BYTES),
+        TPDO1_COB_BASE + drive_node: (FrameKind.DRIVE_STATUS, PAYLOAD_BYTES),
+        TPDO2_COB_BASE + drive_node: (FrameKind.DRIVE_TRIMS, PAYLOAD_BYTES),
+    }
 
 _OFFSET_VOTERS = 64
 """Sensor frames that vote on the sensor-counter offset: enough to outvote a

@@ -1,0 +1,1 @@
+"""Numbered SQL migrations of the station database, packaged so they ship with the code."""

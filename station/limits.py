@@ -1,0 +1,177 @@
+"""The recipe's pass/fail limits applied to a run's numbers: pure, no I/O.
+
+Every limit yields a ``LimitCheck`` whether it passed or not, so a record
+shows how close a passing unit came, and QA can compute capability from the
+same figures the verdict used. A check that cannot apply (a reduction
+demanded of a unit that was already within its limits) is kept with
+``passed=None`` and says why.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+
+from station.analysis.estimate import FitQuality, TrimEstimate
+from station.core import Trims
+from station.recipes import Limits
+from station.runs import LimitCheck, LimitName, Ripple, Verdict
+
+_MPS2 = "m/s²"
+_GAIN = "1/10000"
+
+
+def _within(name: LimitName, value: float, low: float | None, high: float | None,
+            unit: str) -> LimitCheck:
+    passed = (low is None or value >= low) and (high is None or value <= high)
+    return LimitCheck(name, value, low, high, unit, passed)
+
+
+def fit_qualities(estimate: TrimEstimate) -> list[FitQuality]:
+    return [p.quality for p in estimate.parabolas] + [a.quality for a in estimate.affine]
+
+
+def worst_r_squared(estimate: TrimEstimate) -> float | None:
+    """The smallest share of variation explained among fits with points to spare.
+
+    R², not reduced chi²: the harmonics are measured so precisely that a
+    model right to a tenth of a percent still fails chi² by far, and chi²
+    already widens the uncertainties (Birge ratio) that their own limits
+    judge. R² asks what a motion engineer asks of a fit: does it describe
+    the unit at all. A fit with no spare points explains everything
+    trivially and decides nothing.
+    """
+    values = [q.r_squared for q in fit_qualities(estimate) if q.dof > 0]
+    if any(not math.isfinite(v) for v in values):
+        return math.nan
+    return min(values) if values else None
+
+
+def _worst(*values: float) -> float:
+    """The largest value, or NaN if any is NaN (builtin max would hide a NaN after the first)."""
+    return math.nan if any(math.isnan(v) for v in values) else max(values)
+
+
+def estimate_checks(
+    limits: Limits, estimate: TrimEstimate, stored: Trims
+) -> tuple[LimitCheck, ...]:
+    """Limits that are judged before anything is written: trims in bounds, a sound fit.
+
+    ``stored`` are the trims as the drive would hold them (whole units).
+    """
+    bound = limits.offset_bound_mA
+    sigma = estimate.sigma
+    checks = [
+        LimitCheck(LimitName.ESTIMATE, None, None, None, "", True, estimate.method.value),
+        _within(LimitName.OFFSET_A, stored.offset_a_mA, -bound, bound, "mA"),
+        _within(LimitName.OFFSET_B, stored.offset_b_mA, -bound, bound, "mA"),
+        _within(LimitName.GAIN_A, stored.gain_a, limits.gain_min, limits.gain_max, _GAIN),
+        _within(LimitName.GAIN_B, stored.gain_b, limits.gain_min, limits.gain_max, _GAIN),
+        _within(LimitName.OFFSET_SIGMA, _worst(sigma.offset_a_mA, sigma.offset_b_mA), None,
+                limits.max_offset_sigma_mA, "mA"),
+        _within(LimitName.GAIN_SIGMA, _worst(sigma.gain_a, sigma.gain_b), None,
+                limits.max_gain_sigma, _GAIN),
+    ]
+    r2 = worst_r_squared(estimate)
+    if r2 is None:
+        checks.append(LimitCheck(LimitName.FIT_R2, None, limits.min_fit_r_squared, None, "", None,
+                                 "no fit had points to spare: nothing to judge it by"))
+    else:
+        checks.append(_within(LimitName.FIT_R2, r2, limits.min_fit_r_squared, None, ""))
+    return tuple(checks)
+
+
+def unsupported(reason: str) -> LimitCheck:
+    """The unit's response supported no estimate: a failed unit, with the reason."""
+    return LimitCheck(LimitName.ESTIMATE, None, None, None, "", False, reason)
+
+
+def reduction_db(before: float, after: float) -> float:
+    """How much quieter one harmonic got, in dB of amplitude."""
+    if after <= 0.0:
+        return math.inf
+    if before <= 0.0:
+        return -math.inf
+    return 20.0 * math.log10(before / after)
+
+
+def ripple_checks(limits: Limits, before: Ripple | None, after: Ripple) -> tuple[LimitCheck, ...]:
+    """Limits judged on the verification run, against the baseline where one exists.
+
+    The reduction is judged per harmonic, and only for a harmonic that was
+    outside its after-limit to begin with: a harmonic already quiet cannot be
+    asked to get much quieter (it would fail for the noise floor's sake), and
+    a 2nd harmonic at its irreducible floor must not hide a 1st that the
+    offsets silenced.
+    """
+    checks = [
+        _within(LimitName.H1_AFTER, after.h1, None, limits.max_h1_after_mps2, _MPS2),
+        _within(LimitName.H2_AFTER, after.h2, None, limits.max_h2_after_mps2, _MPS2),
+    ]
+    pairs = (
+        (LimitName.H1_REDUCTION, before.h1 if before else None, after.h1,
+         limits.max_h1_after_mps2),
+        (LimitName.H2_REDUCTION, before.h2 if before else None, after.h2,
+         limits.max_h2_after_mps2),
+    )
+    for name, was, now, quiet in pairs:
+        low = limits.min_reduction_db
+        if was is None:
+            checks.append(LimitCheck(name, None, low, None, "dB", None,
+                                     "no baseline was measured"))
+        elif was <= quiet:
+            checks.append(LimitCheck(name, reduction_db(was, now), low, None, "dB", None,
+                                     "within its after-limit before calibration"))
+        else:
+            checks.append(_within(name, reduction_db(was, now), low, None, "dB"))
+    return tuple(checks)
+
+
+def verdict_for(checks: Iterable[LimitCheck]) -> Verdict:
+    return Verdict.FAIL if any(c.passed is False for c in checks) else Verdict.PASS
+
+
+def summary(checks: Sequence[LimitCheck]) -> str:
+    """One line naming what failed, for the record's reason and the operator's banner."""
+    failed = [c for c in checks if c.passed is False]
+    if not failed:
+        return "all limits met"
+    parts = []
+    for c in failed:
+        if c.value is None:
+            parts.append(f"{c.name}: {c.note}")
+            continue
+        # The bound it broke; a NaN breaks both, so name whichever exists.
+        above = c.high is not None and not c.value <= c.high
+        bound = c.high if above or c.low is None else c.low
+        unit = f" {c.unit}" if c.unit else ""
+        parts.append(f"{c.name} = {c.value:.4g}{unit} (limit {bound:g})")
+    return "failed " + "; ".join(parts)
+
+
+def drift_warnings(limits: Limits, previous: Trims, new: Trims) -> list[str]:
+    """Field service: how far the trims moved since the unit's last calibration."""
+    warnings: list[str] = []
+    for name, old, now, bound, unit in (
+        ("offset A", previous.offset_a_mA, new.offset_a_mA, limits.max_drift_offset_mA, "mA"),
+        ("offset B", previous.offset_b_mA, new.offset_b_mA, limits.max_drift_offset_mA, "mA"),
+        ("gain A", previous.gain_a, new.gain_a, limits.max_drift_gain, ""),
+        ("gain B", previous.gain_b, new.gain_b, limits.max_drift_gain, ""),
+    ):
+        drift = now - old
+        if abs(drift) > bound:
+            warnings.append(
+                f"{name} drifted by {drift:+.0f}{unit and ' ' + unit} since the last calibration "
+                f"(from {old:.0f} to {now:.0f}; the recipe warns past {bound:g})"
+            )
+    return warnings
+
+
+def drift(previous: Trims, new: Trims) -> Trims:
+    """New minus previous trims, per trim."""
+    return Trims(
+        new.offset_a_mA - previous.offset_a_mA,
+        new.offset_b_mA - previous.offset_b_mA,
+        new.gain_a - previous.gain_a,
+        new.gain_b - previous.gain_b,
+    )

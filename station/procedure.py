@@ -1,0 +1,502 @@
+"""The calibration of one unit on one bench, step by step, as the recipe says.
+
+Orchestration only: the maths is in ``station.analysis`` (segmenting,
+demodulation, estimators), ``station.designs`` (where to measure),
+``station.selfcheck`` and ``station.limits`` (judging), all pure; the devices
+are behind ``drivers.base``; storage is someone else's job. The procedure
+fills the caller's ``Run`` as it learns things, so when it stops on a device
+error the record still holds everything up to that point, and the whole run
+is always published as an ICD.md §5 recording, whatever happened.
+
+Steps: identify the unit (its electronic serial must match the label, its
+ratings the recipe's product), self-check the sensor at standstill, measure
+a baseline at the trims the drive holds, run the recipe's sweeps closed loop
+(each round's points depend on the last round's estimate), estimate, judge
+the estimate, write and store the trims, reset the drive and read them back,
+verify by measuring again, judge the result, and on a pass write the
+calibration record (0x2101) and store it. The drive is disabled on the way
+out, always.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from enum import StrEnum
+from pathlib import Path
+from typing import Protocol
+
+from drivers.base import CalibrationRecord, Drive
+from station import __version__
+from station.analysis.estimate import (
+    Method,
+    ParabolaFit,
+    TrimAxis,
+    TrimEstimate,
+    TrimPoint,
+    TrimSigma,
+    Unsupported,
+    coherent_estimate,
+    fit_parabola,
+)
+from station.analysis.pipeline import AnalysisOptions, Measured, measure
+from station.analysis.report import fit_summary
+from station.benches import BenchSession, BenchSpec, open_bench
+from station.capture import FrameCapture
+from station.core import GAIN_UNITY, Trims
+from station.designs import (
+    gain_sweep,
+    holds_for,
+    offset_a_sweep,
+    offset_b_sweep,
+    star,
+    with_split,
+    within_drive_range,
+)
+from station.errors import (
+    DeviceError,
+    IdentityMismatch,
+    ProductMismatch,
+    RecordingError,
+    SelfCheckFailed,
+)
+from station.limits import (
+    estimate_checks,
+    ripple_checks,
+    summary,
+    unsupported,
+    verdict_for,
+)
+from station.recipes import CoherentSweep, PaperSweep, Recipe
+from station.recording import RecordingMetadata, RecordingWriter
+from station.runner import Motion
+from station.runs import LimitCheck, Ripple, Run, Verdict
+from station.schedules import Phase, velocity_for
+from station.selfcheck import sensor_self_check
+from station.serials import Serial, label_for
+
+log = logging.getLogger(__name__)
+
+_SAME_SPEED = 0.01
+"""Relative speed difference below which a segment belongs to the recipe's condition."""
+_U16_MAX = 0xFFFF
+
+
+class Step(StrEnum):
+    """What the operator sees the station doing."""
+
+    CONNECT = "connect"
+    IDENTIFY = "identify"
+    SELF_CHECK = "sensor self-check"
+    BASELINE = "baseline"
+    SWEEP = "sweep"
+    ESTIMATE = "estimate"
+    WRITE = "write trims"
+    STORE = "store"
+    RESET = "reset"
+    READ_BACK = "read back"
+    VERIFY = "verify"
+    RECORD = "calibration record"
+    DONE = "done"
+
+
+class Observer(Protocol):
+    """Whoever shows the operator progress (the CLI's rich display, or nobody)."""
+
+    def step(self, step: Step, detail: str) -> None: ...
+
+    def progress(self, done: int, total: int) -> None: ...
+
+
+class Silent:
+    """An observer for callers that show nothing (tests, benchmarks)."""
+
+    def step(self, step: Step, detail: str) -> None:
+        log.info("%s: %s", step.value, detail)
+
+    def progress(self, done: int, total: int) -> None:
+        """Nothing to show."""
+
+
+@dataclass(frozen=True)
+class CalibrationRequest:
+    serial: Serial
+    recipe: Recipe
+    bench: BenchSpec
+    recording: Path
+
+
+class NoMeasurement(DeviceError):
+    """A hold produced no usable steady segment: the bench, not the unit, let us down."""
+
+
+def calibrate_unit(request: CalibrationRequest, run: Run, observer: Observer | None = None) -> None:
+    """Calibrate the unit, filling ``run``; raises a station error when the bench fails.
+
+    On return ``run.verdict`` is PASS or FAIL and ``run.limits`` says why; on
+    an exception the caller records ERROR (or ABORTED) with what ``run``
+    already holds.
+    """
+    shown = observer if observer is not None else Silent()
+    shown.step(Step.CONNECT, f"bench {request.bench.name}")
+    with open_bench(request.bench, request.serial) as session:
+        _Calibration(request, run, session, shown).run()
+
+
+def check_identity(drive: Drive, serial: Serial) -> None:
+    """The unit on the fixture must be the one the operator named (0x1018:4)."""
+    reported = drive.identity().serial_number
+    if reported != serial.number:
+        raise IdentityMismatch(
+            drive.name,
+            f"the unit on the bench reports serial {label_for(reported)} (0x1018:4 = "
+            f"{reported}), not {serial}: wrong unit on the fixture?",
+        )
+
+
+def sha256_of(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+class _Calibration:
+    """One run's state: the session, the recipe's operating point, what was measured."""
+
+    def __init__(self, request: CalibrationRequest, run: Run, session: BenchSession,
+                 observer: Observer) -> None:
+        self.request = request
+        self.recipe = request.recipe
+        self.run_record = run
+        self.session = session
+        self.observer = observer
+        self.drive = session.drive
+        self.period_s = session.spec.sync_period_s
+        self.velocity = 0
+        self.electrical_hz = self.recipe.motion.electrical_hz
+        self.capture: FrameCapture | None = None
+
+    # -- the whole run ------------------------------------------------------------------------
+
+    def run(self) -> None:
+        metadata = self._identify()
+        capture = FrameCapture(metadata)
+        self.capture = capture
+        writer = RecordingWriter(self.request.recording, metadata,
+                                 clock=self.session.recording_clock())
+        start_cycles = self.session.clock.cycles
+        try:
+            with self.session.listening(writer, capture):
+                self._calibrate()
+        finally:
+            self.run_record.motion_s = (self.session.clock.cycles - start_cycles) * self.period_s
+            self._publish(writer)
+
+    def _publish(self, writer: RecordingWriter) -> None:
+        """The recording is kept whatever happened: an error is exactly when it is needed."""
+        try:
+            path = writer.commit()
+        except RecordingError as exc:
+            log.error("the run's recording could not be written: %s", exc)
+            self.run_record.warnings.append(f"recording lost: {exc}")
+            return
+        self.run_record.recording = str(path)
+        self.run_record.recording_sha256 = sha256_of(path)
+
+    def _identify(self) -> RecordingMetadata:
+        """Refuse the wrong unit or the wrong product before anything moves."""
+        self.observer.step(Step.IDENTIFY, str(self.request.serial))
+        drive, sensor, product = self.drive, self.session.sensor, self.recipe.product
+        check_identity(drive, self.request.serial)
+        microsteps = drive.microsteps_per_fullstep()
+        rated = drive.rated_current_mA()
+        if microsteps != product.microsteps or rated != product.rated_current_mA:
+            raise ProductMismatch(
+                drive.name,
+                f"runs {microsteps} microsteps per full step at {rated} mA rated; recipe "
+                f"{self.recipe.name} is for {product.name} ({product.microsteps} microsteps, "
+                f"{product.rated_current_mA} mA)",
+            )
+        self.run_record.trims_before = drive.read_trims()
+        self.velocity = velocity_for(self.recipe.motion.electrical_hz, microsteps)
+        self.electrical_hz = self.velocity / (4.0 * microsteps)
+        sensor.set_range_g(self.recipe.motion.sensor_range_g)
+        fixture = self.session.fixture
+        run = self.run_record
+        return RecordingMetadata(
+            serial=self.request.serial.label,
+            drive_node=self.session.spec.drive_node,
+            sensor_node=self.session.spec.sensor_node,
+            sync_period_s=self.period_s,
+            microsteps_per_fullstep=microsteps,
+            rotor_teeth=product.rotor_teeth,
+            rated_current_mA=rated,
+            sensor_lsb_mps2=sensor.lsb_mps2(),
+            tangential_axis=fixture.tangential_axis,
+            sensor_radius_m=fixture.radius_m,
+            gear_ratio=fixture.gear_ratio,
+            extra={
+                "schedule": run.kind.value,
+                "run_id": run.run_id,
+                "recipe": self.recipe.name,
+                "recipe_version": self.recipe.version,
+                "recipe_sha256": self.recipe.sha256,
+                "bench": self.session.spec.name,
+                "station_id": run.station_id,
+                "station_software": __version__,
+                "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            },
+        )
+
+    def _calibrate(self) -> None:
+        self._self_check()
+        run = self.run_record
+        with Motion(self.drive, self.session.clock,
+                    on_progress=lambda done, total, _h: self.observer.progress(done, total)
+                    ) as motion:
+            estimate = self._sweeps(motion)
+        if estimate is None:
+            return
+        stored = estimate.trims.rounded()
+        checks = estimate_checks(self.recipe.limits, estimate, stored)
+        if verdict_for(checks) is Verdict.FAIL:
+            # Trims out of bounds or a doubtful fit are not written: the drive keeps its own.
+            self._judge(checks)
+            return
+        self._write_and_store(stored)
+        after = self._verify(stored)
+        checks = (*checks, *ripple_checks(self.recipe.limits, run.before, after))
+        self._judge(checks)
+        if run.verdict is Verdict.PASS:
+            self._write_calibration_record()
+        self.observer.step(Step.DONE, run.verdict.value if run.verdict else "")
+
+    def _judge(self, checks: Sequence[LimitCheck]) -> None:
+        self.run_record.limits = tuple(checks)
+        self.run_record.verdict = verdict_for(checks)
+        self.run_record.reason = summary(checks)
+
+    # -- steps --------------------------------------------------------------------------------
+
+    def _self_check(self) -> None:
+        spec = self.recipe.self_check
+        self.observer.step(Step.SELF_CHECK, f"{spec.standstill_s:g} s at standstill")
+        sensor = self.session.sensor
+        cycles = max(1, round(spec.standstill_s / self.period_s))
+        sensor.start_capture()
+        try:
+            self.session.clock.advance(cycles)
+        finally:
+            capture = sensor.stop_capture()
+        result = sensor_self_check(
+            capture.counts,
+            capture.lsb_mps2,
+            samples_expected=cycles,
+            gravity_axis=self.session.fixture.gravity_axis,
+            gravity_tolerance_mps2=spec.gravity_tolerance_mps2,
+            max_noise_mps2=spec.max_noise_mps2,
+        )
+        if not result.ok:
+            raise SelfCheckFailed(sensor.name, "; ".join(result.problems))
+
+    def _measure(self, motion: Motion, points: list[Trims], phase: Phase, *,
+                 lead_periods: float = 0.0, dwell_periods: int | None = None) -> list[Measured]:
+        """Hold each point, then demodulate what the bus carried meanwhile.
+
+        Segments are matched to the plan by the trims the drive reported in
+        effect (TPDO2), never by when the station wrote them. A point that
+        yields no segment is left out with a warning; the estimators say
+        whether what remains suffices.
+        """
+        motion_spec = self.recipe.motion
+        dwell = motion_spec.dwell_periods if dwell_periods is None else dwell_periods
+        holds = holds_for(
+            points,
+            phase=phase,
+            velocity=self.velocity,
+            amplitude_mA=motion_spec.amplitude_mA,
+            hold_periods=motion_spec.settle_periods + dwell,
+            electrical_hz=self.electrical_hz,
+            sync_period_s=self.period_s,
+            lead_periods=lead_periods,
+        )
+        assert self.capture is not None
+        mark = self.capture.mark()
+        motion.run(holds)
+        timeline = self.capture.timeline(mark)
+        measured, rejected = measure(
+            timeline, AnalysisOptions(settle_periods=float(motion_spec.settle_periods))
+        )
+        best: dict[Trims, Measured] = {}
+        for m in measured:
+            seg = m.segment
+            hz = seg.electrical_hz(self.period_s)
+            if seg.amplitude_mA != motion_spec.amplitude_mA or (
+                abs(hz - self.electrical_hz) > _SAME_SPEED * self.electrical_hz
+            ):
+                continue
+            if seg.trims not in best or seg.samples > best[seg.trims].segment.samples:
+                best[seg.trims] = m
+        found: list[Measured] = []
+        for point in points:
+            if point in best:
+                found.append(best[point])
+                continue
+            reasons = "; ".join(sorted({r.reason for r in rejected})) or "no steady segment"
+            self.run_record.warnings.append(
+                f"{phase.value}: point {_trims_text(point)} not measured ({reasons})"
+            )
+        return found
+
+    def _sweeps(self, motion: Motion) -> TrimEstimate | None:
+        """Baseline, then the recipe's sweeps; the estimate, or None after a FAIL."""
+        run = self.run_record
+        assert run.trims_before is not None
+        rated = self.recipe.product.rated_current_mA
+        centre = within_drive_range(run.trims_before, rated)
+        self.observer.step(Step.BASELINE, _trims_text(centre))
+        baseline = self._measure(motion, [centre], Phase.BASELINE,
+                                 lead_periods=self.recipe.motion.spin_up_periods)
+        if baseline:
+            h = baseline[0].harmonics
+            run.before = Ripple(abs(h.h(1)), abs(h.h(2)))
+        else:
+            run.warnings.append("no baseline: the reduction cannot be judged")
+        sweep = self.recipe.sweep
+        try:
+            if isinstance(sweep, PaperSweep):
+                estimate = self._paper(motion, sweep)
+            else:
+                estimate = self._coherent(motion, sweep, centre, baseline)
+        except Unsupported as exc:
+            self._judge((unsupported(str(exc)),))
+            return None
+        run.method = estimate.method.value
+        run.trims_estimated = estimate.trims
+        s = estimate.sigma
+        run.uncertainty = Trims(s.offset_a_mA, s.offset_b_mA, s.gain_a, s.gain_b)
+        run.fit = fit_summary(estimate)
+        run.warnings.extend(estimate.warnings)
+        return estimate
+
+    def _paper(self, motion: Motion, sweep: PaperSweep) -> TrimEstimate:
+        """The paper's three experiments in order, each centred on the previous results."""
+        fits: list[ParabolaFit] = []
+        plan = (
+            (Phase.SWEEP_OFFSET_A, TrimAxis.OFFSET_A),
+            (Phase.SWEEP_OFFSET_B, TrimAxis.OFFSET_B),
+            (Phase.SWEEP_GAIN, TrimAxis.GAIN_SPLIT),
+        )
+        for phase, axis in plan:
+            if axis is TrimAxis.OFFSET_A:
+                points = offset_a_sweep(sweep.offset_min_mA, sweep.offset_max_mA,
+                                        sweep.offset_points)
+            elif axis is TrimAxis.OFFSET_B:
+                points = offset_b_sweep(fits[0].vertex, sweep.offset_min_mA,
+                                        sweep.offset_max_mA, sweep.offset_points)
+            else:
+                points = gain_sweep(fits[0].vertex, fits[1].vertex, sweep.gain_min,
+                                    sweep.gain_max, sweep.gain_points)
+            self.observer.step(Step.SWEEP, f"{phase.value}: {len(points)} points")
+            measured = self._measure(motion, points, phase)
+            self.observer.step(Step.ESTIMATE, axis.value)
+            fit, warnings = fit_parabola([m.point() for m in measured], axis)
+            self.run_record.warnings.extend(warnings)
+            fits.append(fit)
+        a, b, g = fits
+        trims = with_split(Trims(a.vertex, b.vertex, GAIN_UNITY, GAIN_UNITY), g.vertex)
+        return TrimEstimate(
+            method=Method.PAPER,
+            trims=trims,
+            sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
+            parabolas=(a, b, g),
+        )
+
+    def _coherent(self, motion: Motion, sweep: CoherentSweep, centre: Trims,
+                  baseline: list[Measured]) -> TrimEstimate:
+        """Star designs round after round, each around the latest estimate."""
+        rated = self.recipe.product.rated_current_mA
+        points: list[TrimPoint] = [m.point() for m in baseline]
+        estimate: TrimEstimate | None = None
+        rounds = list(zip(sweep.offset_steps_mA, sweep.gain_steps, strict=True))
+        for number, (offset_step, gain_step) in enumerate(rounds, start=1):
+            design = star(centre, offset_step, gain_step, rated)
+            # The centre of the first round is the baseline, measured already.
+            todo = [p for p in design if number > 1 or p != centre or not baseline]
+            self.observer.step(
+                Step.SWEEP,
+                f"round {number}/{len(rounds)}: ±{offset_step} mA, ±{gain_step} around "
+                f"{_trims_text(centre)}",
+            )
+            points.extend(m.point() for m in self._measure(motion, todo, Phase.SWEEP_STAR))
+            self.observer.step(Step.ESTIMATE, f"round {number}: {len(points)} points")
+            estimate = coherent_estimate(points)
+            centre = within_drive_range(estimate.trims, rated)
+        assert estimate is not None  # the recipe guarantees at least one round
+        return estimate
+
+    def _write_and_store(self, trims: Trims) -> None:
+        drive, run = self.drive, self.run_record
+        self.observer.step(Step.WRITE, _trims_text(trims))
+        drive.write_trims(trims)
+        self.observer.step(Step.STORE, "0x1010:01 save")
+        drive.store()
+        run.trims_stored = True
+        run.trims_after = trims
+        self.observer.step(Step.RESET, "NMT reset node")
+        drive.reset()
+        self.observer.step(Step.READ_BACK, "0x2100")
+        back = drive.read_trims()
+        run.trims_after = back
+        if back != trims:
+            raise DeviceError(
+                drive.name,
+                f"after reset the drive holds {_trims_text(back)}, but "
+                f"{_trims_text(trims)} were written and stored: the EEPROM did not keep them",
+            )
+
+    def _verify(self, trims: Trims) -> Ripple:
+        """Measure the stored trims as the drive runs them after its reset."""
+        self.observer.step(Step.VERIFY, _trims_text(trims))
+        with Motion(self.drive, self.session.clock,
+                    on_progress=lambda done, total, _h: self.observer.progress(done, total)
+                    ) as motion:
+            measured = self._measure(
+                motion, [trims], Phase.VERIFY,
+                lead_periods=self.recipe.motion.spin_up_periods,
+                dwell_periods=self.recipe.verification.dwell_periods,
+            )
+        if not measured:
+            raise NoMeasurement(
+                self.session.sensor.name,
+                "the verification run gave no steady segment: " + "; ".join(
+                    w for w in self.run_record.warnings if w.startswith(Phase.VERIFY.value)),
+            )
+        h = measured[0].harmonics
+        after = Ripple(abs(h.h(1)), abs(h.h(2)))
+        self.run_record.after = after
+        return after
+
+    def _write_calibration_record(self) -> None:
+        """0x2101: when, where and how often; stored, so the unit carries its own history."""
+        drive, run = self.drive, self.run_record
+        self.observer.step(Step.RECORD, "0x2101 and store")
+        previous = drive.read_calibration_record()
+        drive.write_calibration_record(
+            CalibrationRecord(
+                calibrated_at=int(time.time()),
+                station_id=run.station_id,
+                count=min(previous.count + 1, _U16_MAX),
+            )
+        )
+        drive.store()
+
+
+def _trims_text(t: Trims) -> str:
+    return (f"offsets {t.offset_a_mA:+.0f}/{t.offset_b_mA:+.0f} mA, "
+            f"gains {t.gain_a:.0f}/{t.gain_b:.0f}")

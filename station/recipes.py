@@ -1,0 +1,656 @@
+"""Calibration recipes: how the station calibrates one product.
+
+A recipe is a versioned TOML file, and the station refuses it before any bus
+traffic unless every value is present, of the right type and within range. No
+key has a default: what a run did must follow from the recipe text alone, so
+that the SHA-256 each run stores identifies the procedure exactly. Problems are
+collected and reported together, each line naming the file and the dotted
+field, because whoever edits a recipe should fix it in one pass rather than one
+error per attempt.
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import math
+import os
+import re
+import tomllib
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass, fields
+from enum import StrEnum
+from importlib.resources import files
+from pathlib import Path
+from typing import Final
+
+from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY
+from station.errors import InputError
+
+RECIPE_FORMAT: Final = "station-recipe/1"
+DEFAULT_RECIPE: Final = "default"
+RECIPE_SUFFIX: Final = ".toml"
+
+# The drive accepts gains in 5000..15000 (ICD.md, 0x2100:03/04).
+GAIN_LIMITS: Final = (5000, 15000)
+# Sum of the two phase gains during the paper's gain sweep: the mean torque stays
+# constant (the paper's step 3, I21 = 2I - I11).
+GAIN_SUM: Final = 2 * GAIN_UNITY
+MAX_COHERENT_ROUNDS: Final = 5
+MAX_GAIN_STEP: Final = 5000
+
+_NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
+# ASCII digits only: ``\d`` would let other scripts' digits into a version.
+_VERSION = re.compile(r"[0-9]+(\.[0-9]+)*")
+# Python 3.11's TOMLDecodeError carries its position only in the message.
+_TOML_POSITION = re.compile(r"\s*\(at line (\d+), column (\d+)\)$")
+
+
+class RecipeError(InputError):
+    """A recipe cannot be used; every problem found is one line of the message.
+
+    An ``InputError``: nothing has been done when it is raised (exit code 2).
+    """
+
+    def __init__(self, source: str, problems: Sequence[str]) -> None:
+        self.source = source
+        self.problems = tuple(problems)
+        super().__init__("\n".join(f"{source}: {problem}" for problem in self.problems))
+
+
+class RecipeMethod(StrEnum):
+    """How the trims are estimated: the paper's three parabola sweeps, or the
+    phase-coherent affine fit of both harmonics around the latest estimate."""
+
+    PAPER = "paper"
+    COHERENT = "coherent"
+
+
+@dataclass(frozen=True)
+class Product:
+    name: str
+    rated_current_mA: int
+    microsteps: int
+    rotor_teeth: int
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Speed and current of every hold; durations in electrical periods, because
+    the demodulation integrates over whole periods."""
+
+    electrical_hz: float
+    amplitude_mA: int
+    spin_up_periods: int
+    settle_periods: int
+    dwell_periods: int
+    sensor_range_g: int
+
+
+@dataclass(frozen=True)
+class PaperSweep:
+    """The paper's three sweeps, closed loop: offset A over [min, max] with B at
+    0, then B with A at its estimate, then gain A over [gain_min, gain_max] with
+    gain B = 20000 - gain A and the offsets at their estimates."""
+
+    offset_min_mA: int
+    offset_max_mA: int
+    offset_points: int
+    gain_min: int
+    gain_max: int
+    gain_points: int
+
+
+@dataclass(frozen=True)
+class CoherentSweep:
+    """One round per entry: a star design (±step on offset A, on offset B and on
+    the gain split) around the latest estimate; later rounds use smaller steps
+    to measure the slopes close to the null."""
+
+    offset_steps_mA: tuple[int, ...]
+    gain_steps: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class SelfCheck:
+    """The standstill check that the sensor is mounted and quiet before a run."""
+
+    standstill_s: float
+    gravity_tolerance_mps2: float
+    max_noise_mps2: float
+
+
+@dataclass(frozen=True)
+class Verification:
+    dwell_periods: int
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Pass/fail limits; the drift limits only warn (field service: how far the
+    new trims moved from the previous ones)."""
+
+    max_h1_after_mps2: float
+    max_h2_after_mps2: float
+    min_reduction_db: float
+    offset_bound_mA: float
+    gain_min: int
+    gain_max: int
+    max_offset_sigma_mA: float
+    max_gain_sigma: float
+    min_fit_r_squared: float
+    max_drift_offset_mA: float
+    max_drift_gain: float
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A validated recipe together with the exact text it came from, so that a
+    run can store the hash and the text can be found again."""
+
+    name: str
+    version: str
+    description: str
+    method: RecipeMethod
+    product: Product
+    motion: Motion
+    sweep: PaperSweep | CoherentSweep
+    self_check: SelfCheck
+    verification: Verification
+    limits: Limits
+    source: str
+    text: str
+    sha256: str
+
+    def hold_periods(self) -> int:
+        """Electrical periods of one trim point: settling, then the measured dwell."""
+        return self.motion.settle_periods + self.motion.dwell_periods
+
+
+def _keys(cls: type) -> tuple[str, ...]:
+    return tuple(f.name for f in fields(cls))
+
+
+_TOML_TYPES: Final[Mapping[str, str]] = {
+    "bool": "a boolean",
+    "int": "an integer",
+    "float": "a float",
+    "str": "a string",
+    "list": "an array",
+    "dict": "a table",
+    "datetime": "a date-time",
+    "date": "a date",
+    "time": "a time",
+}
+
+
+def _toml_type(value: object) -> str:
+    """Name a value's type as the recipe's author wrote it, not as Python holds it."""
+    return _TOML_TYPES.get(type(value).__name__, type(value).__name__)
+
+
+def _interval(low: float | None, low_open: bool, high: float | None, high_open: bool) -> str:
+    if low is not None and high is not None:
+        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low:g}"
+    return f"{'<' if high_open else '<='} {high if high is not None else math.inf:g}"
+
+
+class _Table:
+    """Reads one TOML table field by field, recording each problem instead of
+    raising, so that one pass over a recipe finds all of them.
+
+    Readers return a placeholder when a value is unusable; the placeholder
+    never escapes because any problem makes the parse fail. Cross-field rules
+    ask ``valid`` first, so a bad value is reported once, not again by every
+    rule that uses it.
+    """
+
+    def __init__(
+        self, problems: list[str], path: str, data: Mapping[str, object], *, absent: bool = False
+    ) -> None:
+        self._problems = problems
+        self._path = path
+        self._data = data
+        self._absent = absent  # the table itself is missing: its keys are not reported
+        self._read: set[str] = set()
+        self._bad: set[str] = set()
+
+    def name(self, key: str) -> str:
+        return f"{self._path}.{key}" if self._path else key
+
+    def problem(self, key: str, message: str) -> None:
+        self._bad.add(key)
+        self._problems.append(f"{self.name(key)}: {message}")
+
+    def valid(self, *keys: str) -> bool:
+        return not self._bad.intersection(keys)
+
+    def _raw(self, key: str) -> object | None:
+        self._read.add(key)
+        if key not in self._data:
+            if self._absent:
+                self._bad.add(key)
+            else:
+                self.problem(key, "missing")
+            return None
+        return self._data[key]
+
+    def _wrong_type(self, key: str, expected: str, value: object) -> None:
+        self.problem(key, f"expected {expected}, got {_toml_type(value)} {value!r}")
+
+    def string(
+        self, key: str, *, pattern: re.Pattern[str] | None = None, nonempty: bool = False
+    ) -> str:
+        value = self._raw(key)
+        if value is None:
+            return ""
+        if not isinstance(value, str):
+            self._wrong_type(key, "a string", value)
+            return ""
+        if nonempty and not value:
+            self.problem(key, "must not be empty")
+        elif pattern is not None and not pattern.fullmatch(value):
+            self.problem(key, f"{value!r} does not match {pattern.pattern}")
+        return value
+
+    def integer(
+        self,
+        key: str,
+        low: int | None = None,
+        high: int | None = None,
+        *,
+        choices: Collection[int] | None = None,
+        note: str = "",
+    ) -> int:
+        value = self._raw(key)
+        if value is None:
+            return 0
+        # bool is an int to Python, never to a recipe; a float is refused even when
+        # integral, because 4.0 periods suggests the author meant something else.
+        if isinstance(value, bool) or not isinstance(value, int):
+            self._wrong_type(key, "an integer", value)
+            return 0
+        self.check_int(key, value, low, high, choices=choices, note=note)
+        return value
+
+    def check_int(
+        self,
+        key: str,
+        value: int,
+        low: int | None,
+        high: int | None,
+        *,
+        choices: Collection[int] | None = None,
+        note: str = "",
+    ) -> None:
+        suffix = f" ({note})" if note else ""
+        if choices is not None and value not in choices:
+            listed = ", ".join(str(c) for c in choices)
+            self.problem(key, f"must be one of {listed}, got {value}{suffix}")
+        elif (low is not None and value < low) or (high is not None and value > high):
+            if low is not None and high is not None:
+                bounds = f"in {low}..{high}"
+            else:
+                bounds = f">= {low}" if low is not None else f"<= {high}"
+            self.problem(key, f"must be {bounds}, got {value}{suffix}")
+
+    def real(
+        self,
+        key: str,
+        *,
+        gt: float | None = None,
+        ge: float | None = None,
+        lt: float | None = None,
+        le: float | None = None,
+        note: str = "",
+    ) -> float:
+        value = self._raw(key)
+        if value is None:
+            return 0.0
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            self._wrong_type(key, "a number", value)
+            return 0.0
+        try:
+            number = float(value)
+        except OverflowError:  # TOML integers are unbounded
+            number = math.inf
+        if not math.isfinite(number):
+            self.problem(key, f"must be finite, got {value!r}")
+            return 0.0
+        low, high = (gt if gt is not None else ge), (lt if lt is not None else le)
+        if (
+            (gt is not None and number <= gt)
+            or (ge is not None and number < ge)
+            or (lt is not None and number >= lt)
+            or (le is not None and number > le)
+        ):
+            bounds = _interval(low, gt is not None, high, lt is not None)
+            suffix = f" ({note})" if note else ""
+            self.problem(key, f"must be {bounds}, got {value!r}{suffix}")
+        return number
+
+    def int_array(self, key: str) -> tuple[int, ...]:
+        value = self._raw(key)
+        if value is None:
+            return ()
+        if not isinstance(value, list):
+            self._wrong_type(key, "an array of integers", value)
+            return ()
+        items: list[int] = []
+        for i, item in enumerate(value):
+            if isinstance(item, bool) or not isinstance(item, int):
+                self._wrong_type(f"{key}[{i}]", "an integer", item)
+                self._bad.add(key)
+            else:
+                items.append(item)
+        return tuple(items)
+
+    def table(self, key: str) -> _Table:
+        value = self._raw(key)
+        if isinstance(value, dict):
+            return _Table(self._problems, self.name(key), value)
+        if value is not None:
+            self._wrong_type(key, "a table", value)
+        return _Table(self._problems, self.name(key), {}, absent=True)
+
+    def method(self, key: str) -> RecipeMethod | None:
+        value = self.string(key)
+        if not self.valid(key):
+            return None
+        try:
+            return RecipeMethod(value)
+        except ValueError:
+            listed = ", ".join(repr(m.value) for m in RecipeMethod)
+            self.problem(key, f"must be one of {listed}, got {value!r}")
+            return None
+
+    # Called after every reader of the table, so ``_read`` holds every known key.
+    def finish(self, foreign: Mapping[str, str] | None = None) -> None:
+        """Report every key nobody read: a typo must not silently become a default."""
+        for key in self._data:
+            if key in self._read:
+                continue
+            if foreign and key in foreign:
+                self.problem(key, foreign[key])
+                continue
+            close = difflib.get_close_matches(key, self._read, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            self.problem(key, f"unknown key{hint}")
+
+
+def _read_product(t: _Table) -> Product:
+    product = Product(
+        name=t.string("name", nonempty=True),
+        rated_current_mA=t.integer("rated_current_mA", 1, 65535),
+        microsteps=t.integer("microsteps", 1, 256),
+        rotor_teeth=t.integer("rotor_teeth", 1, 1000),
+    )
+    t.finish()
+    return product
+
+
+def _read_motion(t: _Table, rated: int | None) -> Motion:
+    motion = Motion(
+        electrical_hz=t.real("electrical_hz", gt=0, le=50),
+        amplitude_mA=t.integer(
+            "amplitude_mA",
+            1,
+            rated,
+            note="at most product.rated_current_mA" if rated is not None else "",
+        ),
+        spin_up_periods=t.integer("spin_up_periods", 0, 1000),
+        settle_periods=t.integer("settle_periods", 0, 1000),
+        dwell_periods=t.integer("dwell_periods", 3, 10000),
+        sensor_range_g=t.integer("sensor_range_g", choices=SENSOR_RANGES_G),
+    )
+    t.finish()
+    return motion
+
+
+def _span(t: _Table, keys: tuple[str, str], values: tuple[int, int], through: int) -> None:
+    """A [min, max] pair must be ordered and contain ``through`` (nominal): the
+    paper's parabolas need the untrimmed unit's own ripple, and gain limits
+    that exclude 10000 would fail every unit that needs no gain trim."""
+    low_key, high_key = keys
+    low, high = values
+    if not t.valid(low_key, high_key):
+        return
+    if low >= high:
+        t.problem(low_key, f"must be less than {t.name(high_key)} ({high}), got {low}")
+    elif low > through:
+        t.problem(low_key, f"must be <= {through}: the range {low}..{high} must contain {through}")
+    elif high < through:
+        t.problem(high_key, f"must be >= {through}: the range {low}..{high} must contain {through}")
+
+
+def _neg(value: int | None) -> int | None:
+    return None if value is None else -value
+
+
+def _read_paper_sweep(t: _Table, rated: int | None) -> PaperSweep:
+    # The drive's offset trim range is ±rated/2 (ICD.md, 0x2100:01/02).
+    half = rated // 2 if rated is not None else None
+    offset_note = "the drive's offset range: half of product.rated_current_mA"
+    offset_note = offset_note if half is not None else ""
+    # 20000 - g lies in 5000..15000 exactly when g does, so one range check covers
+    # both phases' gains.
+    gain_note = f"and gain B = {GAIN_SUM} - gain A must be too"
+    sweep = PaperSweep(
+        offset_min_mA=t.integer("offset_min_mA", _neg(half), half, note=offset_note),
+        offset_max_mA=t.integer("offset_max_mA", _neg(half), half, note=offset_note),
+        offset_points=t.integer("offset_points", 3, 101),
+        gain_min=t.integer("gain_min", *GAIN_LIMITS, note=gain_note),
+        gain_max=t.integer("gain_max", *GAIN_LIMITS, note=gain_note),
+        gain_points=t.integer("gain_points", 3, 101),
+    )
+    offsets = (sweep.offset_min_mA, sweep.offset_max_mA)
+    _span(t, ("offset_min_mA", "offset_max_mA"), offsets, 0)
+    _span(t, ("gain_min", "gain_max"), (sweep.gain_min, sweep.gain_max), GAIN_UNITY)
+    return sweep
+
+
+def _read_coherent_sweep(t: _Table, rated: int | None) -> CoherentSweep:
+    sweep = CoherentSweep(
+        offset_steps_mA=t.int_array("offset_steps_mA"), gain_steps=t.int_array("gain_steps")
+    )
+    half = rated // 2 if rated is not None else None
+    for key, steps, high, note in (
+        (
+            "offset_steps_mA",
+            sweep.offset_steps_mA,
+            half,
+            "at most half of product.rated_current_mA",
+        ),
+        ("gain_steps", sweep.gain_steps, MAX_GAIN_STEP, ""),
+    ):
+        if not t.valid(key):
+            continue  # a mistyped element was reported already
+        if not steps:
+            t.problem(key, "must not be empty: one entry per round")
+        elif len(steps) > MAX_COHERENT_ROUNDS:
+            t.problem(key, f"must have at most {MAX_COHERENT_ROUNDS} rounds, got {len(steps)}")
+        for i, step in enumerate(steps):
+            t.check_int(f"{key}[{i}]", step, 1, high, note=note if high is not None else "")
+    rounds_a, rounds_b = len(sweep.offset_steps_mA), len(sweep.gain_steps)
+    if t.valid("offset_steps_mA", "gain_steps") and rounds_a and rounds_b and rounds_a != rounds_b:
+        t.problem(
+            "gain_steps",
+            f"must have as many rounds as {t.name('offset_steps_mA')} ({rounds_a}), got {rounds_b}",
+        )
+    return sweep
+
+
+def _read_sweep(
+    t: _Table, method: RecipeMethod | None, rated: int | None
+) -> PaperSweep | CoherentSweep:
+    sweep: PaperSweep | CoherentSweep
+    if method is RecipeMethod.PAPER:
+        sweep = _read_paper_sweep(t, rated)
+        other = _keys(CoherentSweep)
+    elif method is RecipeMethod.COHERENT:
+        sweep = _read_coherent_sweep(t, rated)
+        other = _keys(PaperSweep)
+    else:
+        # Without a valid method the sweep's keys cannot be judged; the method's
+        # own error says what to fix first.
+        return CoherentSweep((), ())
+    t.finish(dict.fromkeys(other, f"not used by the {method} method"))
+    return sweep
+
+
+def _read_self_check(t: _Table) -> SelfCheck:
+    self_check = SelfCheck(
+        standstill_s=t.real("standstill_s", gt=0, le=10),
+        gravity_tolerance_mps2=t.real("gravity_tolerance_mps2", gt=0, lt=STANDARD_GRAVITY),
+        max_noise_mps2=t.real("max_noise_mps2", gt=0),
+    )
+    t.finish()
+    return self_check
+
+
+def _read_verification(t: _Table) -> Verification:
+    verification = Verification(dwell_periods=t.integer("dwell_periods", 3, 10000))
+    t.finish()
+    return verification
+
+
+def _read_limits(t: _Table, rated: int | None) -> Limits:
+    limits = Limits(
+        max_h1_after_mps2=t.real("max_h1_after_mps2", gt=0),
+        max_h2_after_mps2=t.real("max_h2_after_mps2", gt=0),
+        min_reduction_db=t.real("min_reduction_db", ge=0),
+        offset_bound_mA=t.real(
+            "offset_bound_mA",
+            gt=0,
+            le=rated / 2 if rated is not None else None,
+            note="at most half of product.rated_current_mA, the drive's offset range"
+            if rated is not None
+            else "",
+        ),
+        gain_min=t.integer("gain_min", *GAIN_LIMITS),
+        gain_max=t.integer("gain_max", *GAIN_LIMITS),
+        max_offset_sigma_mA=t.real("max_offset_sigma_mA", gt=0),
+        max_gain_sigma=t.real("max_gain_sigma", gt=0),
+        min_fit_r_squared=t.real("min_fit_r_squared", gt=0, lt=1),
+        max_drift_offset_mA=t.real("max_drift_offset_mA", gt=0),
+        max_drift_gain=t.real("max_drift_gain", gt=0),
+    )
+    _span(t, ("gain_min", "gain_max"), (limits.gain_min, limits.gain_max), GAIN_UNITY)
+    t.finish()
+    return limits
+
+
+def _decode_error(source: str, exc: tomllib.TOMLDecodeError) -> RecipeError:
+    message = str(exc)
+    position = _TOML_POSITION.search(message)
+    if position is None:
+        return RecipeError(source, [f"invalid TOML: {message}"])
+    line, column = position.groups()
+    detail = message[: position.start()]
+    return RecipeError(source, [f"line {line}, column {column}: invalid TOML: {detail}"])
+
+
+def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None = None) -> Recipe:
+    """Validate a recipe's text completely, or raise one ``RecipeError`` listing
+    every problem; ``expected_name`` is the file's stem, which the recipe's name
+    must repeat so that a copied file cannot pose as its original."""
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise _decode_error(source, exc) from None
+
+    problems: list[str] = []
+    root = _Table(problems, "", data)
+    recipe_format = root.string("format")
+    if root.valid("format") and recipe_format != RECIPE_FORMAT:
+        root.problem("format", f"must be {RECIPE_FORMAT!r}, got {recipe_format!r}")
+    name = root.string("name", pattern=_NAME)
+    if expected_name is not None and root.valid("name") and name != expected_name:
+        root.problem("name", f"{name!r} must equal the file's name {expected_name!r}")
+    version = root.string("version", pattern=_VERSION)
+    description = root.string("description")
+    method = root.method("method")
+
+    # Product first: the drive's ranges in the other tables follow from its
+    # rated current, and only a valid one may bound them.
+    product_table = root.table("product")
+    product = _read_product(product_table)
+    rated = product.rated_current_mA if product_table.valid("rated_current_mA") else None
+    motion = _read_motion(root.table("motion"), rated)
+    sweep = _read_sweep(root.table("sweep"), method, rated)
+    self_check = _read_self_check(root.table("self_check"))
+    verification = _read_verification(root.table("verification"))
+    limits = _read_limits(root.table("limits"), rated)
+    root.finish()
+
+    # A bad method is always among the problems; the test also narrows the type.
+    if problems or method is None:
+        raise RecipeError(source, problems)
+    return Recipe(
+        name=name,
+        version=version,
+        description=description,
+        method=method,
+        product=product,
+        motion=motion,
+        sweep=sweep,
+        self_check=self_check,
+        verification=verification,
+        limits=limits,
+        source=source,
+        text=text,
+        sha256=hashlib.sha256(text.encode("utf-8")).hexdigest(),
+    )
+
+
+def available_recipes() -> list[str]:
+    """Names of the recipes shipped with the station, for listing and lookup."""
+    return sorted(
+        entry.name.removesuffix(RECIPE_SUFFIX)
+        for entry in files("recipes").iterdir()
+        if entry.name.endswith(RECIPE_SUFFIX) and entry.is_file()
+    )
+
+
+def _is_path(name_or_path: str | Path) -> bool:
+    if isinstance(name_or_path, Path):
+        return True
+    separators = {"/", os.sep} | ({os.altsep} if os.altsep else set())
+    return name_or_path.endswith(RECIPE_SUFFIX) or any(s in name_or_path for s in separators)
+
+
+def _decode(source: str, data: bytes) -> str:
+    # Decoded from the bytes, not read as text: newline translation would make
+    # the hash differ from the file's own SHA-256.
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise RecipeError(source, [f"not UTF-8 text (byte {exc.start})"]) from None
+
+
+def load_recipe(name_or_path: str | Path) -> Recipe:
+    """Load a shipped recipe by name, or any recipe file by path.
+
+    A ``Path``, or a string with a path separator or the ``.toml`` suffix, is
+    a file; a bare word is a shipped recipe, so an operator's ``--recipe paper`` cannot pick
+    up a stray ``paper.toml`` from the working directory.
+    """
+    if _is_path(name_or_path):
+        path = Path(name_or_path)
+        source = str(path)
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise RecipeError(source, [f"cannot read: {exc.strerror or exc}"]) from None
+        return parse_recipe(_decode(source, data), source=source, expected_name=path.stem)
+
+    # Shipped recipes are package data, so they are found from a wheel too.
+    name = str(name_or_path)
+    resource = files("recipes") / f"{name}{RECIPE_SUFFIX}"
+    if not resource.is_file():
+        listed = ", ".join(available_recipes()) or "none"
+        raise RecipeError(name, [f"no such recipe; available: {listed}"])
+    source = str(resource)
+    return parse_recipe(_decode(source, resource.read_bytes()), source=source, expected_name=name)

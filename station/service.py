@@ -1,0 +1,279 @@
+"""What the station's commands do: validate, run the procedure, record, answer QA.
+
+This is the one place where a run meets the database. Everything the
+operator got wrong (serial label, recipe, bench file, missing reason) is
+refused here before the database or the bus is touched, so exit code 2 means
+nothing was done. Once a run has started it is recorded whatever happens: a
+failed unit as FAIL with its limits, a station problem as ERROR with its
+reason, Ctrl-C as ABORTED; the recording of the bus goes beside the database.
+"""
+
+from __future__ import annotations
+
+import getpass
+import logging
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from datetime import UTC, datetime
+from pathlib import Path
+
+from drivers.base import CalibrationRecord
+from station import __version__
+from station.benches import BenchSpec, open_bench
+from station.core import Trims
+from station.errors import InputError, StationError
+from station.limits import drift, drift_warnings
+from station.paths import station_home
+from station.procedure import CalibrationRequest, Observer, calibrate_unit, check_identity
+from station.qa import Capability, capability
+from station.recipes import DEFAULT_RECIPE, Recipe, load_recipe, parse_recipe
+from station.runs import RecipeRef, Run, RunKind, Verdict
+from station.serials import Serial, parse_serial
+from station.store import RunFilter, Store, VerificationRecord
+
+log = logging.getLogger(__name__)
+
+DB_ENV = "STATION_DB"
+OPERATOR_ENV = "STATION_OPERATOR"
+RECORDINGS_DIR = "recordings"
+RECORDING_SUFFIX = ".blf"
+"""Vector BLF: compressed, and read by every CAN tool a motion engineer owns."""
+
+
+def database_path(explicit: Path | None = None) -> Path:
+    """``--db``, else ``STATION_DB``, else ``$STATION_HOME/station.db``."""
+    if explicit is not None:
+        return explicit.expanduser()
+    from_env = os.environ.get(DB_ENV)
+    return Path(from_env).expanduser() if from_env else station_home() / "station.db"
+
+
+def recordings_dir(db_path: Path) -> Path:
+    """Recordings live beside the database, one folder per unit."""
+    return db_path.parent / RECORDINGS_DIR
+
+
+def default_operator() -> str:
+    return os.environ.get(OPERATOR_ENV) or getpass.getuser()
+
+
+@dataclass(frozen=True)
+class Station:
+    """Where results go, which bench is attached, and who is at the station."""
+
+    db_path: Path
+    bench: BenchSpec
+    operator: str
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A finished run, and for field service the run whose trims the unit had."""
+
+    run: Run
+    previous: Run | None = None
+
+    @property
+    def drift(self) -> Trims | None:
+        previous = self.previous.trims_after if self.previous is not None else None
+        if previous is None or self.run.trims_after is None:
+            return None
+        return drift(previous, self.run.trims_after)
+
+
+def calibrate(station: Station, serial_label: str, recipe_name: str | None = None,
+              observer: Observer | None = None) -> Calibration:
+    """Production calibration of one unit (``station calibrate``)."""
+    serial = parse_serial(serial_label)
+    recipe = load_recipe(recipe_name or DEFAULT_RECIPE)
+    with Store(station.db_path) as store:
+        run = _new_run(station, serial, recipe, RunKind.CALIBRATE)
+        return Calibration(_execute(store, station, serial, recipe, run, observer=observer))
+
+
+def recalibrate(station: Station, serial_label: str, reason: str, *,
+                recipe_name: str | None = None, force: bool = False,
+                observer: Observer | None = None) -> Calibration:
+    """Field service: calibrate a unit that has a record, and show how far it drifted.
+
+    Without ``--recipe`` the unit is recalibrated with the current version of
+    the recipe it was last calibrated with.
+    """
+    serial = parse_serial(serial_label)
+    if not reason.strip():
+        raise InputError("--reason must say why the unit is recalibrated")
+    with Store(station.db_path) as store:
+        previous = store.last_stored(serial.label)
+        if previous is None and not force:
+            raise InputError(
+                f"{serial} has no recorded calibration at this station's database "
+                f"({station.db_path}); use --force to calibrate it anyway"
+            )
+        name = recipe_name or (previous.recipe.name if previous is not None else DEFAULT_RECIPE)
+        recipe = load_recipe(name)
+        run = _new_run(station, serial, recipe, RunKind.RECALIBRATE)
+        run.service_reason = reason.strip()
+        run.previous_run_id = previous.run_id if previous is not None else None
+        previous_trims = previous.trims_after if previous is not None else None
+        run = _execute(store, station, serial, recipe, run, observer=observer,
+                       previous_trims=previous_trims)
+        return Calibration(run, previous)
+
+
+def _new_run(station: Station, serial: Serial, recipe: Recipe, kind: RunKind) -> Run:
+    return Run(
+        serial=serial.label,
+        kind=kind,
+        recipe=RecipeRef(recipe.name, recipe.version, recipe.sha256),
+        station_id=station.bench.station_id,
+        operator=station.operator,
+        software_version=__version__,
+        bench=station.bench.name,
+    )
+
+
+def _execute(store: Store, station: Station, serial: Serial, recipe: Recipe, run: Run, *,
+             observer: Observer | None, previous_trims: Trims | None = None) -> Run:
+    """Run the procedure and record the outcome, whatever it is."""
+    run_id = store.begin_run(run, recipe.text)
+    folder = recordings_dir(station.db_path) / serial.label
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        recording = folder / f"{serial.label}-run{run_id:06d}{RECORDING_SUFFIX}"
+        request = CalibrationRequest(serial, recipe, station.bench, recording)
+        calibrate_unit(request, run, observer)
+    except KeyboardInterrupt:
+        run.verdict, run.reason = Verdict.ABORTED, "aborted by the operator"
+    except StationError as exc:
+        run.verdict, run.reason = Verdict.ERROR, str(exc)
+    except OSError as exc:
+        run.verdict, run.reason = Verdict.ERROR, f"{exc.filename}: {exc.strerror}"
+    except Exception as exc:
+        # A defect of the station, not of the unit: keep the traceback for the developers.
+        log.exception("internal error during the run of %s", serial)
+        run.verdict, run.reason = Verdict.ERROR, f"internal error: {exc!r}"
+    finally:
+        if run.verdict is None:
+            run.verdict, run.reason = Verdict.ABORTED, "the station was stopped during the run"
+        if previous_trims is not None and run.trims_after is not None:
+            run.warnings.extend(drift_warnings(recipe.limits, previous_trims, run.trims_after))
+        run.finished_at = datetime.now(UTC)
+        store.finish_run(run)
+    return run
+
+
+# --- verify -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The drive's stored trims against the last trims the station stored in it."""
+
+    record: VerificationRecord
+    calibration_record: CalibrationRecord
+    recorded_verdict: Verdict | None
+
+    @property
+    def match(self) -> bool:
+        return self.record.match
+
+
+def verify(station: Station, serial_label: str) -> Verification:
+    """Read the unit's trims and calibration record; compare with the database (read-only)."""
+    serial = parse_serial(serial_label)
+    with Store(station.db_path) as store:
+        recorded = store.last_stored(serial.label)
+        with open_bench(station.bench, serial) as session:
+            check_identity(session.drive, serial)
+            drive_trims = session.drive.read_trims()
+            calibration_record = session.drive.read_calibration_record()
+        recorded_trims = recorded.trims_after if recorded is not None else None
+        record = VerificationRecord(
+            serial=serial.label,
+            verified_at=datetime.now(UTC),
+            station_id=station.bench.station_id,
+            operator=station.operator,
+            bench=station.bench.name,
+            match=recorded_trims is not None and recorded_trims == drive_trims,
+            drive_trims=drive_trims,
+            recorded_run_id=recorded.run_id if recorded is not None else None,
+            recorded_trims=recorded_trims,
+        )
+        store.add_verification(record)
+    return Verification(record, calibration_record,
+                        recorded.verdict if recorded is not None else None)
+
+
+# --- QA ---------------------------------------------------------------------------------------
+
+
+def history(db_path: Path, serial_label: str) -> list[Run]:
+    serial = parse_serial(serial_label)
+    with Store(db_path) as store:
+        return store.history(serial.label)
+
+
+def query(db_path: Path, run_filter: RunFilter) -> list[Run]:
+    with Store(db_path) as store:
+        return store.query(run_filter)
+
+
+@dataclass(frozen=True)
+class RecipeStatistics:
+    """Process capability of one recipe version over the runs QA selected."""
+
+    recipe: RecipeRef
+    runs: int
+    verdicts: dict[Verdict, int]
+    quantities: dict[str, Capability] = field(default_factory=dict)
+
+
+def statistics(db_path: Path, run_filter: RunFilter) -> list[RecipeStatistics]:
+    """Mean, standard deviation and Cpk of trims and residual ripple, per recipe version.
+
+    Capability is judged against the limits of the exact recipe text the runs
+    used (kept in the database by hash), not today's file. Only runs that
+    measured a unit (pass or fail) count; errors and aborts measured nothing.
+    """
+    with Store(db_path) as store:
+        runs = store.query(run_filter)
+        groups: dict[str, list[Run]] = {}
+        for run in runs:
+            groups.setdefault(run.recipe.sha256, []).append(run)
+        texts = {sha: store.recipe_text(sha) for sha in groups}
+    out: list[RecipeStatistics] = []
+    for sha, members in groups.items():
+        ref = members[0].recipe
+        verdicts = {v: sum(1 for r in members if r.verdict is v) for v in Verdict}
+        text = texts[sha]
+        measured = [r for r in members if r.verdict in (Verdict.PASS, Verdict.FAIL)]
+        quantities = _capabilities(measured, parse_recipe(text) if text is not None else None)
+        out.append(RecipeStatistics(ref, len(members), verdicts, quantities))
+    out.sort(key=lambda s: (s.recipe.name, s.recipe.version))
+    return out
+
+
+def _capabilities(runs: Sequence[Run], recipe: Recipe | None) -> dict[str, Capability]:
+    limits = recipe.limits if recipe is not None else None
+    bound = limits.offset_bound_mA if limits is not None else None
+    gain_low = limits.gain_min if limits is not None else None
+    gain_high = limits.gain_max if limits is not None else None
+    trims = [r.trims_after for r in runs if r.trims_after is not None and r.trims_stored]
+    after = [r.after for r in runs if r.after is not None]
+    return {
+        "offset_a_mA": capability([t.offset_a_mA for t in trims], _neg(bound), bound),
+        "offset_b_mA": capability([t.offset_b_mA for t in trims], _neg(bound), bound),
+        "gain_a": capability([t.gain_a for t in trims], gain_low, gain_high),
+        "gain_b": capability([t.gain_b for t in trims], gain_low, gain_high),
+        "h1_after_mps2": capability(
+            [a.h1 for a in after], None, limits.max_h1_after_mps2 if limits else None
+        ),
+        "h2_after_mps2": capability(
+            [a.h2 for a in after], None, limits.max_h2_after_mps2 if limits else None
+        ),
+    }
+
+
+def _neg(value: float | None) -> float | None:
+    return None if value is None else -value

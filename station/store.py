@@ -1,0 +1,660 @@
+"""The station's SQLite results database, and the only module that speaks SQL.
+
+A run becomes a row the moment it begins and is committed at once, so a
+station that dies mid-run still leaves a trace (verdict NULL) that the next
+start can report; the results then replace the row's open fields in one
+transaction. The schema is the numbered migrations of the ``db`` package,
+applied in order on first use; a database written by newer software is refused
+rather than half-understood. Every sqlite3 failure surfaces as a
+``DatabaseError`` naming the file, so the CLI can say which disk to look at.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import sqlite3
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, fields
+from datetime import datetime
+from importlib.resources import files
+from importlib.resources.abc import Traversable
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+from station.core import Trims
+from station.errors import DatabaseError, InputError
+from station.runs import (
+    LimitCheck,
+    RecipeRef,
+    Ripple,
+    Run,
+    RunKind,
+    Verdict,
+    limit_name,
+    parse_utc_iso,
+    utc_iso,
+)
+
+MIGRATIONS_PACKAGE = "db"
+"""Where the shipped migrations live (package data, so they work installed)."""
+
+BUSY_TIMEOUT_MS = 5000
+"""Several stations may share one database file: wait this long for a lock."""
+
+_MIGRATION_FILE = re.compile(r"^(?P<number>\d{4})_[a-z0-9_]+\.sql$")
+
+# Column names are the dataclass's field names, so a new trim cannot be forgotten here.
+_TRIM_FIELDS = tuple(f.name for f in fields(Trims))
+_RIPPLE_FIELDS = tuple(f.name for f in fields(Ripple))
+
+# What is known when a run begins: written once by begin_run, never updated.
+_START_COLUMNS = (
+    "serial",
+    "kind",
+    "recipe_name",
+    "recipe_version",
+    "recipe_sha256",
+    "station_id",
+    "operator",
+    "software_version",
+    "bench",
+    "started_at",
+    "service_reason",
+    "previous_run_id",
+)
+
+
+def _group(prefix: str, names: Sequence[str]) -> tuple[str, ...]:
+    return tuple(f"{prefix}_{name}" for name in names)
+
+
+# What the run learns: finish_run rewrites all of these, so a second finish corrects the first.
+_TRIM_GROUPS = ("trims_before", "trims_after", "trims_estimated", "uncertainty")
+_RIPPLE_GROUPS = ("before", "after")
+_RESULT_COLUMNS = (
+    "finished_at",
+    "verdict",
+    "reason",
+    *(column for prefix in _TRIM_GROUPS for column in _group(prefix, _TRIM_FIELDS)),
+    "trims_stored",
+    *(column for prefix in _RIPPLE_GROUPS for column in _group(prefix, _RIPPLE_FIELDS)),
+    "method",
+    "fit",
+    "warnings",
+    "recording",
+    "recording_sha256",
+    "motion_s",
+)
+_LIMIT_COLUMNS = ("run_id", "name", "position", "value", "low", "high", "unit", "passed", "note")
+_VERIFICATION_COLUMNS = (
+    "serial",
+    "verified_at",
+    "station_id",
+    "operator",
+    "bench",
+    "trims_match",
+    *_group("drive", _TRIM_FIELDS),
+    "recorded_run_id",
+    *_group("recorded", _TRIM_FIELDS),
+)
+
+
+def _insert(table: str, columns: Sequence[str], verb: str = "INSERT") -> str:
+    return (
+        f"{verb} INTO {table} ({', '.join(columns)}) "
+        f"VALUES ({', '.join(':' + column for column in columns)})"
+    )
+
+
+# The same recipe text is stored once, however many runs follow it.
+_INSERT_RECIPE = _insert(
+    "recipes", ("sha256", "name", "version", "text", "first_used_at"), "INSERT OR IGNORE"
+)
+_INSERT_RUN = _insert("runs", _START_COLUMNS)
+_UPDATE_RESULTS = (
+    f"UPDATE runs SET {', '.join(f'{c} = :{c}' for c in _RESULT_COLUMNS)} WHERE run_id = :run_id"
+)
+_INSERT_LIMIT = _insert("limit_checks", _LIMIT_COLUMNS)
+_INSERT_VERIFICATION = _insert("verifications", _VERIFICATION_COLUMNS)
+_SELECT_RUNS = "SELECT * FROM runs"
+# One query for the limits of any number of runs: the ids travel as one JSON array.
+_SELECT_LIMITS = (
+    f"SELECT {', '.join(_LIMIT_COLUMNS)} FROM limit_checks "
+    "WHERE run_id IN (SELECT value FROM json_each(?)) ORDER BY run_id, position"
+)
+
+
+@dataclass(frozen=True)
+class Migration:
+    """One schema step: ``number`` is the ``user_version`` it leaves behind."""
+
+    number: int
+    name: str
+    sql: str
+
+
+def load_migrations(source: Traversable) -> tuple[Migration, ...]:
+    """Read ``NNNN_name.sql`` files, numbered 1, 2, 3... without gaps.
+
+    A gap or a misnamed ``.sql`` file is a packaging mistake; skipping it would
+    leave every database a step behind without anyone noticing.
+    """
+    found: list[Migration] = []
+    for entry in source.iterdir():
+        if not entry.name.endswith(".sql"):
+            continue
+        match = _MIGRATION_FILE.match(entry.name)
+        if match is None:
+            raise DatabaseError(str(source), f"migration {entry.name!r} is not named NNNN_name.sql")
+        found.append(Migration(int(match["number"]), entry.name, entry.read_text("utf-8")))
+    found.sort(key=lambda migration: migration.number)
+    numbers = [migration.number for migration in found]
+    if numbers != list(range(1, len(found) + 1)):
+        raise DatabaseError(str(source), f"migrations must be numbered 1..n, found {numbers}")
+    return tuple(found)
+
+
+@dataclass(frozen=True)
+class RunFilter:
+    """What QA asks for; every field left None matches everything.
+
+    ``since`` and ``until`` bound ``started_at`` inclusively. With ``limit``,
+    the newest ``limit`` matching runs are kept (a dashboard's "last 50"), still
+    returned oldest first like every other list of runs.
+    """
+
+    serial: str | None = None
+    since: datetime | None = None
+    until: datetime | None = None
+    recipe: str | None = None
+    verdict: Verdict | None = None
+    station_id: int | None = None
+    limit: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.limit is not None and self.limit < 0:
+            raise ValueError(f"limit must be >= 0, got {self.limit}")
+
+
+@dataclass(frozen=True)
+class VerificationRecord:
+    """A unit's drive trims read back and compared with what the station recorded.
+
+    ``recorded_run_id`` and ``recorded_trims`` are None when the station has no
+    stored trims for the unit at all, which is itself a finding.
+    """
+
+    serial: str
+    verified_at: datetime
+    station_id: int
+    operator: str
+    bench: str
+    match: bool
+    drive_trims: Trims
+    recorded_run_id: int | None
+    recorded_trims: Trims | None
+
+
+class Store:
+    """An open results database; close it (or use ``with``) to release the file.
+
+    ``migrations`` replaces the shipped ``db`` package as the schema source, so
+    tests can feed broken or future migrations.
+    """
+
+    def __init__(self, path: Path, *, migrations: Traversable | None = None) -> None:
+        self.path = Path(path)
+        self._conn: sqlite3.Connection | None = None
+        known = load_migrations(migrations if migrations is not None else files(MIGRATIONS_PACKAGE))
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            # isolation_level=None: the store, not the sqlite3 module, opens transactions.
+            conn = sqlite3.connect(self.path, isolation_level=None, timeout=BUSY_TIMEOUT_MS / 1000)
+        except (OSError, sqlite3.Error) as exc:
+            raise self._error("cannot open", exc) from exc
+        try:
+            self._prepare(conn, known)
+        except BaseException:
+            conn.close()
+            raise
+        self._conn = conn
+
+    # -- lifetime --------------------------------------------------------------
+
+    @property
+    def closed(self) -> bool:
+        return self._conn is None
+
+    def close(self) -> None:
+        # Forgotten before closing, so a second close is a no-op even if this one fails.
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            try:
+                conn.close()
+            except sqlite3.Error as exc:
+                raise self._error("cannot close", exc) from exc
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        traceback: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    @property
+    def schema_version(self) -> int:
+        with self._transaction("read the schema version") as conn:
+            return _user_version(conn)
+
+    # -- runs ------------------------------------------------------------------
+
+    def begin_run(self, run: Run, recipe_text: str) -> int:
+        """Record that ``run`` started, with the exact recipe text; set ``run.run_id``.
+
+        Committed before returning: if the station dies during the motion, the
+        row (verdict NULL) is what tells the next shift a run never finished.
+        """
+        if run.run_id is not None:
+            raise ValueError(f"run of {run.serial} already begun as run {run.run_id}")
+        digest = hashlib.sha256(recipe_text.encode("utf-8")).hexdigest()
+        if digest != run.recipe.sha256:
+            # The hash is how a run finds its recipe again; a wrong one would lie forever.
+            raise ValueError(
+                f"recipe {run.recipe.name} {run.recipe.version}: sha256 {run.recipe.sha256} "
+                f"is not the hash of the text given ({digest})"
+            )
+        recipe = {
+            "sha256": digest,
+            "name": run.recipe.name,
+            "version": run.recipe.version,
+            "text": recipe_text,
+            "first_used_at": utc_iso(run.started_at),
+        }
+        with self._transaction(f"begin a run of {run.serial}", write=True) as conn:
+            conn.execute(_INSERT_RECIPE, recipe)
+            run_id = conn.execute(_INSERT_RUN, _start_values(run)).lastrowid
+        if run_id is None:  # pragma: no cover - sqlite3 always sets it after an INSERT
+            raise self._error("begin a run", None)
+        run.run_id = run_id
+        return run_id
+
+    def finish_run(self, run: Run) -> None:
+        """Write everything the run learnt, and replace its limit checks, atomically."""
+        if run.run_id is None:
+            raise ValueError(f"run of {run.serial} was never begun")
+        names = [check.name for check in run.limits]
+        if len(set(names)) != len(names):
+            raise ValueError(f"run {run.run_id}: a limit is checked twice in {names}")
+        values = _result_values(run)
+        limits = [_limit_values(run.run_id, i, check) for i, check in enumerate(run.limits)]
+        with self._transaction(f"finish run {run.run_id}", write=True) as conn:
+            if conn.execute(_UPDATE_RESULTS, values).rowcount != 1:
+                raise InputError(f"no run {run.run_id} in database {self.path}")
+            conn.execute("DELETE FROM limit_checks WHERE run_id = ?", (run.run_id,))
+            conn.executemany(_INSERT_LIMIT, limits)
+
+    def get_run(self, run_id: int) -> Run:
+        runs = self._runs(f"read run {run_id}", "WHERE run_id = ?", (run_id,))
+        if not runs:
+            raise InputError(f"no run {run_id} in database {self.path}")
+        return runs[0]
+
+    def history(self, serial: str) -> list[Run]:
+        """Every run of one unit, oldest first."""
+        return self._runs(
+            f"read the history of {serial}", "WHERE serial = ? ORDER BY run_id", (serial,)
+        )
+
+    def query(self, f: RunFilter) -> list[Run]:
+        clauses: list[str] = []
+        params: list[object] = []
+        for clause, value in (
+            ("serial = ?", f.serial),
+            ("started_at >= ?", None if f.since is None else utc_iso(f.since)),
+            ("started_at <= ?", None if f.until is None else utc_iso(f.until)),
+            ("recipe_name = ?", f.recipe),
+            ("verdict = ?", None if f.verdict is None else f.verdict.value),
+            ("station_id = ?", f.station_id),
+        ):
+            if value is not None:
+                clauses.append(clause)
+                params.append(value)
+        where = f"WHERE {' AND '.join(clauses)}" if clauses else ""
+        if f.limit is None:
+            return self._runs("query runs", f"{where} ORDER BY run_id", params)
+        # The newest come first out of SQLite (so LIMIT keeps them), then back in order.
+        newest = self._runs(
+            "query runs", f"{where} ORDER BY run_id DESC LIMIT ?", [*params, f.limit]
+        )
+        return newest[::-1]
+
+    def last_stored(self, serial: str) -> Run | None:
+        """The run whose trims the unit should hold: the latest that stored any."""
+        runs = self._runs(
+            f"find the stored trims of {serial}",
+            "WHERE serial = ? AND trims_stored = 1 ORDER BY run_id DESC LIMIT 1",
+            (serial,),
+        )
+        return runs[0] if runs else None
+
+    def last_run(self, serial: str) -> Run | None:
+        runs = self._runs(
+            f"find the last run of {serial}",
+            "WHERE serial = ? ORDER BY run_id DESC LIMIT 1",
+            (serial,),
+        )
+        return runs[0] if runs else None
+
+    def open_runs(self) -> list[Run]:
+        """Runs that began and never finished: a station crash to report."""
+        return self._runs("find open runs", "WHERE verdict IS NULL ORDER BY run_id", ())
+
+    def recipe_text(self, sha256: str) -> str | None:
+        with self._transaction(f"read recipe {sha256}") as conn:
+            row = conn.execute("SELECT text FROM recipes WHERE sha256 = ?", (sha256,)).fetchone()
+        return None if row is None else str(row["text"])
+
+    # -- verifications ---------------------------------------------------------
+
+    def add_verification(self, v: VerificationRecord) -> int:
+        values: dict[str, object] = {
+            "serial": v.serial,
+            "verified_at": utc_iso(v.verified_at),
+            "station_id": v.station_id,
+            "operator": v.operator,
+            "bench": v.bench,
+            "trims_match": int(v.match),
+            **_trim_values("drive", v.drive_trims),
+            "recorded_run_id": v.recorded_run_id,
+            **_trim_values("recorded", v.recorded_trims),
+        }
+        with self._transaction(f"record a verification of {v.serial}", write=True) as conn:
+            verification_id = conn.execute(_INSERT_VERIFICATION, values).lastrowid
+        if verification_id is None:  # pragma: no cover - always set after an INSERT
+            raise self._error("record a verification", None)
+        return verification_id
+
+    def verifications(self, serial: str) -> list[VerificationRecord]:
+        """Every verification of one unit, oldest first."""
+        with self._transaction(f"read the verifications of {serial}") as conn:
+            rows = conn.execute(
+                "SELECT * FROM verifications WHERE serial = ? ORDER BY verification_id",
+                (serial,),
+            ).fetchall()
+        return [
+            VerificationRecord(
+                serial=row["serial"],
+                verified_at=parse_utc_iso(row["verified_at"]),
+                station_id=row["station_id"],
+                operator=row["operator"],
+                bench=row["bench"],
+                match=bool(row["trims_match"]),
+                drive_trims=_required_trims(row, "drive"),
+                recorded_run_id=row["recorded_run_id"],
+                recorded_trims=_trims_from(row, "recorded"),
+            )
+            for row in rows
+        ]
+
+    # -- plumbing --------------------------------------------------------------
+
+    def _error(self, doing: str, exc: BaseException | None) -> DatabaseError:
+        return DatabaseError(str(self.path), doing if exc is None else f"{doing}: {exc}")
+
+    def _prepare(self, conn: sqlite3.Connection, known: Sequence[Migration]) -> None:
+        conn.row_factory = sqlite3.Row
+        newest = known[-1].number if known else 0
+        try:
+            # Both are per connection, not stored in the file: set on every open.
+            conn.execute("PRAGMA foreign_keys = ON")
+            conn.execute(f"PRAGMA busy_timeout = {BUSY_TIMEOUT_MS}")
+            version = _user_version(conn)
+            # Checked before WAL is switched on: a newer database is not even touched.
+            if version > newest:
+                raise self._error(
+                    f"schema version {version} is newer than this software knows "
+                    f"({newest}); refusing it, install the newer station software",
+                    None,
+                )
+            conn.execute("PRAGMA journal_mode = WAL").fetchone()
+        except sqlite3.Error as exc:
+            raise self._error("cannot open", exc) from exc
+        for migration in known:
+            if migration.number > version:
+                version = self._apply(conn, migration)
+
+    def _apply(self, conn: sqlite3.Connection, migration: Migration) -> int:
+        """Run one migration and its version bump as one transaction; return the version.
+
+        IMMEDIATE takes the write lock first, so two stations opening a new
+        file together queue up; the loser's statements then fail on tables that
+        exist, and the version it finds afterwards shows the work is done.
+        """
+        script = (
+            f"BEGIN IMMEDIATE;\n{migration.sql}\n;\n"
+            f"PRAGMA user_version = {migration.number};\nCOMMIT;"
+        )
+        try:
+            conn.executescript(script)
+        except BaseException as exc:
+            if conn.in_transaction:
+                with suppress(sqlite3.Error):
+                    conn.execute("ROLLBACK")
+            if not isinstance(exc, sqlite3.Error):
+                raise
+            try:
+                version = _user_version(conn)
+            except sqlite3.Error:
+                version = -1
+            if version >= migration.number:
+                return version
+            raise self._error(
+                f"migration {migration.name} failed and was rolled back "
+                f"(schema stays at version {version}): {exc}",
+                None,
+            ) from exc
+        return migration.number
+
+    @contextmanager
+    def _transaction(self, doing: str, *, write: bool = False) -> Iterator[sqlite3.Connection]:
+        """One transaction, rolled back on any error; sqlite3's errors become ours.
+
+        Reads take one too, so a run and its limit checks come from the same
+        snapshot even while another station writes.
+        """
+        conn = self._conn
+        if conn is None:
+            raise self._error(f"cannot {doing}: the store is closed", None)
+        try:
+            # A writer takes the lock up front: upgrading a read lock later can fail at once
+            # with SQLITE_BUSY instead of waiting out the busy timeout.
+            conn.execute("BEGIN IMMEDIATE" if write else "BEGIN")
+            yield conn
+            conn.execute("COMMIT")
+        except BaseException as exc:
+            if conn.in_transaction:
+                with suppress(sqlite3.Error):
+                    conn.execute("ROLLBACK")
+            if isinstance(exc, sqlite3.Error):
+                raise self._error(f"cannot {doing}", exc) from exc
+            raise
+
+    def _runs(self, doing: str, tail: str, params: Sequence[object]) -> list[Run]:
+        with self._transaction(doing) as conn:
+            rows = conn.execute(f"{_SELECT_RUNS} {tail}", params).fetchall()
+            ids = [row["run_id"] for row in rows]
+            # Limit checks of all these runs in one query, grouped here by run.
+            limits: dict[int, list[LimitCheck]] = {run_id: [] for run_id in ids}
+            if ids:
+                for row in conn.execute(_SELECT_LIMITS, (json.dumps(ids),)):
+                    limits[row["run_id"]].append(_limit_from(row))
+        return [_run_from(row, limits[row["run_id"]]) for row in rows]
+
+
+# -- rows <-> dataclasses ---------------------------------------------------------
+
+
+def _user_version(conn: sqlite3.Connection) -> int:
+    return int(conn.execute("PRAGMA user_version").fetchone()[0])
+
+
+def _time_or_none(moment: datetime | None) -> str | None:
+    return None if moment is None else utc_iso(moment)
+
+
+def _parse_or_none(text: str | None) -> datetime | None:
+    return None if text is None else parse_utc_iso(text)
+
+
+def _group_values(
+    prefix: str, names: Sequence[str], value: Trims | Ripple | None
+) -> dict[str, float | None]:
+    columns = _group(prefix, names)
+    if value is None:
+        return dict.fromkeys(columns)
+    return {column: getattr(value, name) for column, name in zip(columns, names, strict=True)}
+
+
+def _trim_values(prefix: str, trims: Trims | None) -> dict[str, float | None]:
+    return _group_values(prefix, _TRIM_FIELDS, trims)
+
+
+def _ripple_values(prefix: str, ripple: Ripple | None) -> dict[str, float | None]:
+    return _group_values(prefix, _RIPPLE_FIELDS, ripple)
+
+
+def _floats_from(row: sqlite3.Row, columns: Sequence[str]) -> list[float] | None:
+    """A group of REAL columns: None when all are NULL.
+
+    SQLite stores NaN as NULL, so a NULL beside numbers was a NaN.
+    """
+    raw = [row[column] for column in columns]
+    if all(value is None for value in raw):
+        return None
+    return [math.nan if value is None else float(value) for value in raw]
+
+
+def _trims_from(row: sqlite3.Row, prefix: str) -> Trims | None:
+    values = _floats_from(row, _group(prefix, _TRIM_FIELDS))
+    return None if values is None else Trims(*values)
+
+
+def _required_trims(row: sqlite3.Row, prefix: str) -> Trims:
+    trims = _trims_from(row, prefix)
+    if trims is None:  # the schema makes these columns NOT NULL
+        raise ValueError(f"{prefix} trims missing from a row that requires them")
+    return trims
+
+
+def _ripple_from(row: sqlite3.Row, prefix: str) -> Ripple | None:
+    values = _floats_from(row, _group(prefix, _RIPPLE_FIELDS))
+    return None if values is None else Ripple(*values)
+
+
+def _start_values(run: Run) -> dict[str, object]:
+    return {
+        "serial": run.serial,
+        "kind": run.kind.value,
+        "recipe_name": run.recipe.name,
+        "recipe_version": run.recipe.version,
+        "recipe_sha256": run.recipe.sha256,
+        "station_id": run.station_id,
+        "operator": run.operator,
+        "software_version": run.software_version,
+        "bench": run.bench,
+        "started_at": utc_iso(run.started_at),
+        "service_reason": run.service_reason,
+        "previous_run_id": run.previous_run_id,
+    }
+
+
+def _result_values(run: Run) -> dict[str, object]:
+    values: dict[str, object] = {
+        "run_id": run.run_id,
+        "finished_at": _time_or_none(run.finished_at),
+        "verdict": None if run.verdict is None else run.verdict.value,
+        "reason": run.reason,
+        **_trim_values("trims_before", run.trims_before),
+        **_trim_values("trims_after", run.trims_after),
+        **_trim_values("trims_estimated", run.trims_estimated),
+        **_trim_values("uncertainty", run.uncertainty),
+        "trims_stored": int(run.trims_stored),
+        **_ripple_values("before", run.before),
+        **_ripple_values("after", run.after),
+        "method": run.method,
+        # JSON keeps the fit's nesting and the warnings' order without more tables.
+        "fit": None if run.fit is None else json.dumps(run.fit),
+        "warnings": json.dumps(run.warnings),
+        "recording": run.recording,
+        "recording_sha256": run.recording_sha256,
+        "motion_s": run.motion_s,
+    }
+    return values
+
+
+def _run_from(row: sqlite3.Row, limits: Sequence[LimitCheck]) -> Run:
+    return Run(
+        serial=row["serial"],
+        kind=RunKind(row["kind"]),
+        recipe=RecipeRef(row["recipe_name"], row["recipe_version"], row["recipe_sha256"]),
+        station_id=row["station_id"],
+        operator=row["operator"],
+        software_version=row["software_version"],
+        bench=row["bench"],
+        started_at=parse_utc_iso(row["started_at"]),
+        service_reason=row["service_reason"],
+        previous_run_id=row["previous_run_id"],
+        run_id=row["run_id"],
+        finished_at=_parse_or_none(row["finished_at"]),
+        verdict=None if row["verdict"] is None else Verdict(row["verdict"]),
+        reason=row["reason"],
+        limits=tuple(limits),
+        trims_before=_trims_from(row, "trims_before"),
+        trims_after=_trims_from(row, "trims_after"),
+        trims_stored=bool(row["trims_stored"]),
+        trims_estimated=_trims_from(row, "trims_estimated"),
+        uncertainty=_trims_from(row, "uncertainty"),
+        before=_ripple_from(row, "before"),
+        after=_ripple_from(row, "after"),
+        method=row["method"],
+        fit=None if row["fit"] is None else json.loads(row["fit"]),
+        warnings=json.loads(row["warnings"]),
+        recording=row["recording"],
+        recording_sha256=row["recording_sha256"],
+        motion_s=row["motion_s"],
+    )
+
+
+def _limit_values(run_id: int, position: int, check: LimitCheck) -> dict[str, object]:
+    return {
+        "run_id": run_id,
+        "name": str(check.name),
+        "position": position,
+        "value": check.value,
+        "low": check.low,
+        "high": check.high,
+        "unit": check.unit,
+        "passed": None if check.passed is None else int(check.passed),  # NULL: did not apply
+        "note": check.note,
+    }
+
+
+def _limit_from(row: sqlite3.Row) -> LimitCheck:
+    return LimitCheck(
+        name=limit_name(row["name"]),
+        value=row["value"],
+        low=row["low"],
+        high=row["high"],
+        unit=row["unit"],
+        passed=None if row["passed"] is None else bool(row["passed"]),
+        note=row["note"],
+    )

@@ -1,0 +1,163 @@
+"""What people see: rich tables and the operator's banner, built from plain data.
+
+The CLI prints these on stdout when ``--json`` is not given. They read the
+same documents the JSON carries (``run_report.run_dict``), so what a person
+sees and what a script reads cannot disagree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+from rich import box
+from rich.console import Group, RenderableType
+from rich.panel import Panel
+from rich.table import Table
+from rich.text import Text
+
+_VERDICT_STYLE = {"pass": "bold white on green", "fail": "bold white on red",
+                  "error": "bold white on dark_orange3", "aborted": "bold white on grey30"}
+
+
+def trims_text(trims: dict[str, float] | None) -> str:
+    if trims is None:
+        return "—"
+    return (f"A {trims['offset_a_mA']:+.0f} mA, B {trims['offset_b_mA']:+.0f} mA, "
+            f"gains {trims['gain_a']:.0f}/{trims['gain_b']:.0f}")
+
+
+def _ripple_text(ripple: dict[str, float] | None) -> str:
+    if ripple is None:
+        return "—"
+    return f"H1 {ripple['h1']:.4f}, H2 {ripple['h2']:.4f} m/s²"
+
+
+def _limit_text(check: dict[str, Any]) -> str:
+    value = check["value"]
+    bound = " .. ".join(
+        "" if b is None else f"{b:g}" for b in (check["low"], check["high"])
+    ).strip(" .")
+    shown = "—" if value is None else f"{value:.4g}"
+    unit = f" {check['unit']}" if check["unit"] else ""
+    note = f" ({check['note']})" if check["note"] else ""
+    return f"{check['name']} = {shown}{unit}, limit {bound or 'none'}{note}"
+
+
+def banner(verdict: str | None, serial: str, reason: str | None) -> Panel:
+    """The one thing an operator must not misread: big, coloured, with the reason."""
+    word = (verdict or "unknown").upper()
+    text = Text(f"  {serial}: {word}  ", style=_VERDICT_STYLE.get(verdict or "", "bold"),
+                justify="center")
+    body: list[RenderableType] = [text]
+    if reason and verdict != "pass":
+        body.append(Text(reason, justify="center"))
+    return Panel(Group(*body), expand=True)
+
+
+def run_view(doc: dict[str, Any]) -> Group:
+    """A run's result for the operator: what changed, how quiet it got, and the verdict."""
+    table = Table(title=f"run {doc['run_id']}: {doc['serial']} ({doc['kind']}, recipe "
+                        f"{doc['recipe']} {doc['recipe_version']})", show_header=False)
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    table.add_row("trims before", trims_text(doc["trims_before"]))
+    if "previous_trims" in doc:
+        table.add_row("previous calibration", trims_text(doc["previous_trims"]))
+    sigma = doc["uncertainty"]
+    stored = trims_text(doc["trims"]) if doc["trims"] is not None else "not stored"
+    if sigma is not None:
+        stored += (f"  (1σ {sigma['offset_a_mA']:.2f}/{sigma['offset_b_mA']:.2f} mA, "
+                   f"{sigma['gain_a']:.1f})")
+    table.add_row("trims stored", stored)
+    if doc.get("drift") is not None:
+        table.add_row("drift since previous", trims_text(doc["drift"]))
+    table.add_row("ripple before", _ripple_text(doc["before"]))
+    table.add_row("ripple after", _ripple_text(doc["after"]))
+    for check in doc["limits"]:
+        mark = {True: "[green]ok[/]", False: "[red]FAILED[/]", None: "[dim]n/a[/]"}[check["passed"]]
+        table.add_row(f"limit {check['name']}", f"{mark} {_limit_text(check)}")
+    if doc["motion_s"] is not None:
+        table.add_row("motion time", f"{doc['motion_s']:.1f} s")
+    table.add_row("recording", doc["recording"] or "—")
+    parts: list[RenderableType] = [table]
+    parts.extend(Text(f"warning: {w}", style="yellow") for w in doc["warnings"])
+    parts.append(banner(doc["verdict"], doc["serial"], doc["reason"]))
+    return Group(*parts)
+
+
+def _compact_trims(trims: dict[str, float] | None) -> str:
+    """Two short lines (offsets, then gains): a table of runs must fit a terminal."""
+    if trims is None:
+        return "—"
+    return (f"{trims['offset_a_mA']:+.0f}/{trims['offset_b_mA']:+.0f}\n"
+            f"{trims['gain_a']:.0f}/{trims['gain_b']:.0f}")
+
+
+def runs_table(docs: Sequence[dict[str, Any]], title: str, *, one_unit: bool = False) -> Table:
+    """History and query results, one line per run, as QA scans them (80 columns)."""
+    table = Table(title=title, box=box.SIMPLE_HEAD, padding=(0, 1), pad_edge=False,
+                  caption="trims: offsets A/B (mA) over gains A/B; H1 over H2 after (m/s²)")
+    columns = ["run", "started UTC", "serial", "verdict", "recipe", "stn", "trims", "H after",
+               "failed"]
+    if one_unit:
+        columns.remove("serial")
+    for column in columns:
+        table.add_column(column, no_wrap=column != "failed")
+    for d in docs:
+        after = d["after"]
+        cells = {
+            "run": str(d["run_id"]),
+            "started UTC": d["started_at"][:16].replace("T", "\n"),
+            "serial": d["serial"],
+            "verdict": d["verdict"] or "running",
+            "recipe": f"{d['recipe']}\n{d['recipe_version']}",
+            "stn": str(d["station"]),
+            "trims": _compact_trims(d["trims"]),
+            "H after": "—" if after is None else f"{after['h1']:.4f}\n{after['h2']:.4f}",
+            "failed": ", ".join(c["name"] for c in d["failed_limits"]) or "—",
+        }
+        table.add_row(*(cells[c] for c in columns))
+    return table
+
+
+def verify_view(doc: dict[str, Any]) -> Group:
+    table = Table(title=f"verify {doc['serial']}", show_header=False)
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    table.add_row("trims in the drive", trims_text(doc["drive_trims"]))
+    recorded = doc["recorded_trims"]
+    source = f" (run {doc['recorded_run_id']}, {doc['recorded_verdict']})" if recorded else ""
+    table.add_row("trims recorded", trims_text(recorded) + source)
+    record = doc["calibration_record"]
+    table.add_row("0x2101 in the drive", f"calibrated at {record['calibrated_at'] or 'never'}, "
+                  f"station {record['station_id']}, count {record['count']}")
+    word = "match" if doc["match"] else "mismatch"
+    style = "bold white on green" if doc["match"] else "bold white on red"
+    return Group(table, Panel(Text(f"  {doc['serial']}: {word.upper()}  ", style=style,
+                                   justify="center")))
+
+
+def _number(value: float | None, digits: int = 2) -> str:
+    if value is None or not math.isfinite(value):
+        return "—"
+    return f"{value:.{digits}f}"
+
+
+def stats_view(docs: Sequence[dict[str, Any]]) -> Group:
+    """Per recipe version: counts by verdict, then capability of each quantity."""
+    tables: list[RenderableType] = []
+    for d in docs:
+        counts = ", ".join(f"{k} {v}" for k, v in d["verdicts"].items() if v)
+        table = Table(title=f"recipe {d['recipe']} {d['recipe_version']} "
+                            f"({d['recipe_sha256'][:12]}): {d['runs']} runs: {counts}")
+        for column in ("quantity", "n", "mean", "std", "low", "high", "Cpk"):
+            table.add_column(column, justify="left" if column == "quantity" else "right")
+        for name, c in d["quantities"].items():
+            table.add_row(name, str(c["n"]), _number(c["mean"], 4), _number(c["std"], 4),
+                          _number(c["low"], 1), _number(c["high"], 3), _number(c["cpk"]))
+        tables.append(table)
+    if not tables:
+        tables.append(Text("no runs match"))
+    return Group(*tables)

@@ -1,0 +1,273 @@
+"""Bench files and the bench name (station.benches): parsing only, no bench is opened."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from drivers.canbus import BusConfig
+from station.benches import (
+    BENCH_ENV,
+    SIM_BENCH,
+    SIM_SPEC,
+    BenchFileError,
+    BenchSpec,
+    Fixture,
+    SimSettings,
+    Transport,
+    load_bench,
+    parse_bench,
+)
+from station.core import Axis, Effect, LoadKind
+from station.errors import ExitCode, InputError
+
+REAL = """\
+name = "line3"
+station_id = 7
+transport = "canopen"
+sync_period_s = 0.002
+
+[bus]
+interface = "socketcan"
+channel = "can0"
+bitrate = 500000
+
+[nodes]
+drive = 2
+sensor = 20
+
+[fixture]
+tangential_axis = "x"
+gravity_axis = "Z"
+radius_m = 0.1
+gear_ratio = 1
+"""
+
+FIXTURE = """
+[fixture]
+tangential_axis = "y"
+gravity_axis = "z"
+radius_m = 0.05
+gear_ratio = 0.142857
+"""
+
+
+def refusal(text: str, source: str = "bench.toml") -> str:
+    """The message a bench file is refused with; always an input error (exit code 2)."""
+    with pytest.raises(BenchFileError) as caught:
+        parse_bench(text, source=source)
+    assert isinstance(caught.value, InputError)
+    assert caught.value.exit_code is ExitCode.USAGE
+    message = str(caught.value)
+    assert message.startswith(f"bench file {source}")
+    return message
+
+
+# --- the simulated bench by name --------------------------------------------------------------
+
+
+def test_sim_is_the_default_bench() -> None:
+    spec = load_bench()
+    assert spec is SIM_SPEC
+    assert spec.name == SIM_BENCH == "sim"
+    assert spec.simulated and spec.sim == SimSettings()
+    assert (spec.drive_node, spec.sensor_node, spec.transport) == (1, 16, Transport.CANOPEN)
+    assert load_bench("sim") is SIM_SPEC
+
+
+def test_the_bench_comes_from_station_bench_when_none_is_named(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    path = tmp_path / "line3.toml"
+    path.write_text(REAL, encoding="utf-8")
+    monkeypatch.setenv(BENCH_ENV, str(path))
+    assert load_bench().name == "line3"
+    assert load_bench("sim") is SIM_SPEC  # a named bench wins over the environment
+    monkeypatch.setenv(BENCH_ENV, "sim")
+    assert load_bench() is SIM_SPEC
+
+
+# --- real benches -----------------------------------------------------------------------------
+
+
+def test_a_real_bench_file_parses_to_its_spec() -> None:
+    spec = parse_bench(REAL, source="benches/line3.toml")
+    assert spec == BenchSpec(
+        name="line3",
+        station_id=7,
+        transport=Transport.CANOPEN,
+        bus=BusConfig(interface="socketcan", channel="can0", bitrate=500000),
+        drive_node=2,
+        sensor_node=20,
+        sync_period_s=0.002,
+        fixture=Fixture(Axis.X, Axis.Z, 0.1, 1.0),
+        sim=None,
+        source="benches/line3.toml",
+    )
+    assert not spec.simulated
+    assert spec.bus is not None and dict(spec.bus.options) == {}
+
+
+def test_a_minimal_real_bench_takes_defaults_and_its_name_from_the_file() -> None:
+    spec = parse_bench(FIXTURE, source="/etc/station/bench-7.toml")
+    assert spec.name == "bench-7"
+    assert (spec.station_id, spec.drive_node, spec.sensor_node) == (1, 1, 16)
+    assert spec.bus is None  # python-can's own configuration when opened
+    assert spec.sync_period_s == 0.001
+    assert spec.fixture == Fixture(Axis.Y, Axis.Z, 0.05, 0.142857)
+
+
+def test_extra_bus_keys_are_python_can_options() -> None:
+    text = REAL.replace('bitrate = 500000', 'bitrate = 500000\nfd = true')
+    spec = parse_bench(text, source="b.toml")
+    assert spec.bus is not None and dict(spec.bus.options) == {"fd": True}
+
+
+def test_load_bench_reads_a_bench_file_by_path(tmp_path: Path) -> None:
+    path = tmp_path / "line3.toml"
+    path.write_text(REAL, encoding="utf-8")
+    spec = load_bench(str(path))
+    assert spec.source == str(path)
+    assert spec.fixture == Fixture(Axis.X, Axis.Z, 0.1, 1.0)
+
+
+def test_unknown_keys_are_named_at_the_top_level_and_in_tables() -> None:
+    text = REAL.replace('transport = "canopen"', 'transport = "canopen"\ncolour = "blue"')
+    text = text.replace("sensor = 20", "sensor = 20\nmotor = 3")
+    text = text.replace("radius_m = 0.1", "radius_mm = 100")
+    message = refusal(text)
+    lines = message.splitlines()[1:]
+    assert "  colour: unknown key" in lines
+    assert "  nodes.motor: unknown key" in lines
+    assert "  fixture.radius_mm: unknown key" in lines
+    assert "  fixture.radius_m: missing" in lines
+
+
+def test_a_real_bench_without_a_fixture_is_refused() -> None:
+    text = REAL.split("[fixture]", maxsplit=1)[0]
+    message = refusal(text)
+    assert "fixture: a real bench must describe its fixture" in message
+
+
+def test_a_modbus_drive_is_refused_as_not_supported_yet() -> None:
+    message = refusal(REAL.replace('transport = "canopen"', 'transport = "modbus"'))
+    assert "transport:" in message and "not supported" in message and "yet" in message
+
+
+def test_an_unknown_transport_names_the_choices() -> None:
+    message = refusal(REAL.replace('transport = "canopen"', 'transport = "ethercat"'))
+    assert "transport: must be one of ['canopen', 'modbus']" in message
+    assert "not supported" not in message
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "expected"),
+    [
+        ("drive = 2", "drive = 128", "nodes.drive: node-ID must be 1..127, not 128"),
+        ("drive = 2", "drive = 20", "nodes: drive and sensor need different node-IDs"),
+        ("station_id = 7", "station_id = 70000", "station_id: must fit 0x2101:02 (U16)"),
+        ("sync_period_s = 0.002", "sync_period_s = 1", "sync_period_s: must be 0.0001..0.1 s"),
+        ('gravity_axis = "Z"', 'gravity_axis = "x"', "fixture.gravity_axis: gravity cannot act"),
+        ('gravity_axis = "Z"', 'gravity_axis = "w"', "fixture.gravity_axis: must be x, y or z"),
+        ("radius_m = 0.1", "radius_m = -0.1", "fixture.radius_m: must be positive"),
+        ("station_id = 7", "station_id = true", "station_id: expected a number"),
+        ('interface = "socketcan"', 'interface = "nonsense"', "bus: CAN interface 'nonsense'"),
+    ],
+)
+def test_a_bad_value_is_refused_naming_its_field(old: str, new: str, expected: str) -> None:
+    text = REAL.replace(old, new)
+    assert text != REAL
+    assert expected in refusal(text)
+
+
+def test_every_problem_of_a_file_is_reported_at_once() -> None:
+    text = REAL.replace("drive = 2", "drive = 0").replace('transport = "canopen"',
+                                                          'transport = "modbus"')
+    message = refusal(text)
+    assert "nodes.drive" in message and "transport" in message
+
+
+# --- simulated benches in a file --------------------------------------------------------------
+
+
+def test_a_sim_bench_file_may_name_another_unit_its_effects_and_noise() -> None:
+    text = """\
+name = "rehearsal"
+
+[sim]
+unit = "SN42"
+effects = ["friction", "detent_torque"]
+noise_ug = 400
+load = "belt"
+seed = 3
+"""
+    spec = parse_bench(text, source="rehearsal.toml")
+    assert spec.simulated
+    assert spec.sim == SimSettings(
+        load=LoadKind.BELT,
+        unit="SN42",
+        effects=frozenset({Effect.FRICTION, Effect.DETENT_TORQUE}),
+        noise_ug=400.0,
+        seed=3,
+    )
+    assert spec.fixture is None and spec.bus is None
+
+
+def test_a_sim_bench_with_no_effects_listed_is_not_one_with_its_own_effects() -> None:
+    spec = parse_bench("[sim]\neffects = []\n", source="quiet.toml")
+    assert spec.sim is not None and spec.sim.effects == frozenset()
+    spec = parse_bench("[sim]\n", source="own.toml")
+    assert spec.sim == SimSettings()
+
+
+def test_a_sim_bench_may_draw_its_fixture_on_the_virtual_bus() -> None:
+    spec = parse_bench('[bus]\ninterface = "virtual"\n[sim]\n' + FIXTURE, source="wrong.toml")
+    assert spec.bus is not None and spec.bus.interface == "virtual"
+    assert spec.fixture == Fixture(Axis.Y, Axis.Z, 0.05, 0.142857)
+
+
+def test_a_sim_bench_on_a_non_virtual_bus_is_refused() -> None:
+    text = '[bus]\ninterface = "socketcan"\nchannel = "can0"\n[sim]\nunit = "SN42"\n'
+    assert "bus: a simulated bench lives on python-can's virtual bus" in refusal(text)
+
+
+@pytest.mark.parametrize(
+    ("line", "expected"),
+    [
+        ('unit = "123"', "sim.unit: serial '123' is malformed"),
+        ('effects = ["gremlins"]', "sim.effects: must name effects from"),
+        ("noise_ug = -1", "sim.noise_ug: must be >= 0"),
+        ('load = "flywheel"', "sim.load: must be one of ['disk', 'belt']"),
+        ("noise = 3", "sim.noise: unknown key"),
+    ],
+)
+def test_bad_sim_settings_are_refused_naming_the_field(line: str, expected: str) -> None:
+    assert expected in refusal(f"[sim]\n{line}\n")
+
+
+# --- unusable files ---------------------------------------------------------------------------
+
+
+def test_bad_toml_is_a_bench_file_error() -> None:
+    message = refusal('name = "line3\n[nodes\n')
+    assert "not valid TOML" in message
+
+
+def test_a_missing_bench_file_is_refused(tmp_path: Path) -> None:
+    missing = tmp_path / "nowhere.toml"
+    with pytest.raises(BenchFileError, match="neither 'sim' nor an existing bench file") as caught:
+        load_bench(str(missing))
+    assert isinstance(caught.value, InputError)
+
+
+def test_a_bench_path_that_is_a_directory_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(BenchFileError, match="cannot be read"):
+        load_bench(str(tmp_path))
+
+
+def test_a_bench_file_that_is_not_utf8_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "latin1.toml"
+    path.write_bytes('name = "bänk"\n'.encode("latin-1"))
+    with pytest.raises(BenchFileError, match=r"latin1\.toml"):
+        load_bench(str(path))

@@ -1,0 +1,298 @@
+"""``station calibrate`` and field service end to end on the simulated bench.
+
+Every verdict path the operator can meet: a unit that passes (and lands on
+the plant's own optimum), a unit that fails a limit (after its trims were
+stored, and before, when the estimate is out of bounds), and station errors
+(the wrong unit on the fixture, a sensor that fails its self-check, Ctrl-C
+mid-sweep). Each run must be in the database with what it learnt; the drive
+must be left disabled whatever happened.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from drivers.base import DriveState, decode_statusword
+from station import benches
+from station.cli import main
+from station.procedure import Step
+from station.recipes import load_recipe
+from station.recording import read_metadata
+from station.serials import parse_serial
+from station.service import Station, calibrate
+from station.sim.bench import SimBench
+from station.sim.record import describe_unit
+from station.store import Store
+
+OFFSET_TOLERANCE_mA = 3.0
+GAIN_TOLERANCE = 30.0
+CLI_KEYS = {"run_id", "serial", "verdict", "trims", "before", "after", "failed_limits",
+            "recording"}
+TRIM_KEYS = {"offset_a_mA", "offset_b_mA", "gain_a", "gain_b"}
+NOMINAL = {"offset_a_mA": 0.0, "offset_b_mA": 0.0, "gain_a": 10000.0, "gain_b": 10000.0}
+
+
+def _run(args: list[str], monkeypatch: pytest.MonkeyPatch,
+         capsys: pytest.CaptureFixture[str]) -> tuple[int, Any]:
+    """The CLI in-process; returns the exit code and the parsed JSON on stdout (or None).
+
+    What went to stderr stays readable as ``LAST_STDERR[0]``.
+    """
+    monkeypatch.setattr(sys, "argv", ["station", *args])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    captured = capsys.readouterr()
+    LAST_STDERR[0] = " ".join(captured.err.split())  # the console may wrap a long message
+    out = captured.out
+    return int(stop.value.code or 0), json.loads(out) if out.strip() else None
+
+
+LAST_STDERR = [""]
+
+
+def _recipe_variant(folder: Path, name: str, **values: float) -> Path:
+    """The default recipe under another name, with some ``key = value`` lines changed."""
+    text = (Path(__file__).parents[1] / "recipes" / "default.toml").read_text(encoding="utf-8")
+    text = text.replace('name = "default"', f'name = "{name}"')
+    for key, value in values.items():
+        text, count = re.subn(rf"(?m)^{key} = [^#\n]*", f"{key} = {value!r}", text)
+        assert count == 1, key
+    path = folder / f"{name}.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _bench_file(folder: Path, name: str, body: str) -> Path:
+    path = folder / f"{name}.toml"
+    path.write_text(f'name = "{name}"\nstation_id = 7\n{body}', encoding="utf-8")
+    return path
+
+
+@pytest.fixture
+def db(tmp_path: Path) -> Path:
+    return tmp_path / "results" / "station.db"
+
+
+def test_calibrate_passes_on_the_optimum_and_verify_and_history_agree(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, doc = _run(["calibrate", "SN123", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 0, doc["reason"]
+    assert doc.keys() >= CLI_KEYS
+    assert doc["verdict"] == "pass" and doc["failed_limits"] == []
+    assert set(doc["trims"]) == TRIM_KEYS
+    assert set(doc["before"]) == set(doc["after"]) == {"h1", "h2"}
+    assert doc["after"]["h1"] < doc["before"]["h1"] / 10
+    truth = describe_unit(parse_serial("SN123"))["optimal_trims"]
+    for key in ("offset_a_mA", "offset_b_mA"):
+        assert abs(doc["trims"][key] - truth[key]) <= OFFSET_TOLERANCE_mA
+    for key in ("gain_a", "gain_b"):
+        assert abs(doc["trims"][key] - truth[key]) <= GAIN_TOLERANCE
+    # The run is kept as an ICD recording beside the database, with its hash in the record.
+    recording = Path(doc["recording"])
+    assert recording.parent.parent == db.parent / "recordings"
+    assert read_metadata(recording).serial == "SN123"
+    assert len(doc["recording_sha256"]) == 64
+
+    # A new process reads the unit's EEPROM back and finds what the database says.
+    verified = subprocess.run(
+        [sys.executable, "-m", "station.cli", "verify", "SN123", "--db", str(db), "--json"],
+        capture_output=True, text=True, check=False,
+    )
+    assert verified.returncode == 0, verified.stderr
+    match = json.loads(verified.stdout)
+    assert match["match"] is True
+    assert match["drive_trims"] == match["recorded_trims"] == doc["trims"]
+    assert match["calibration_record"]["count"] == 1
+
+    code, runs = _run(["history", "SN123", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 0
+    assert [r["run_id"] for r in runs] == [doc["run_id"]]
+    assert {"run_id", "started_at", "verdict", "trims", "recipe", "station"} <= runs[0].keys()
+    assert runs[0]["recipe"] == "default" and runs[0]["station"] == 1
+
+
+def test_a_limit_the_unit_cannot_meet_fails_the_unit_and_is_recorded(
+    tmp_path: Path, db: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    recipe = _recipe_variant(tmp_path, "hushed", max_h1_after_mps2=1e-5)
+    code, doc = _run(["calibrate", "SN123", "--recipe", str(recipe), "--db", str(db), "--json"],
+                     monkeypatch, capsys)
+    assert code == 1
+    assert doc["verdict"] == "fail"
+    assert [c["name"] for c in doc["failed_limits"]] == ["h1_after_mps2"]
+    assert doc["failed_limits"][0]["high"] == 1e-5
+    assert "h1_after_mps2" in doc["reason"]
+    # The trims were stored (they are the unit's best), but no calibration record was.
+    code, match = _run(["verify", "SN123", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 0 and match["drive_trims"] == doc["trims"]
+    assert match["calibration_record"]["count"] == 0
+    with Store(db) as store:
+        (run,) = store.history("SN123")
+    assert run.verdict is not None and run.verdict.value == "fail"
+    assert run.recipe.name == "hushed" and run.recipe.sha256 == load_recipe(recipe).sha256
+
+
+def test_trims_outside_the_recipe_bounds_are_never_written(
+    tmp_path: Path, db: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    recipe = _recipe_variant(tmp_path, "narrow", offset_bound_mA=20.0)
+    code, doc = _run(["calibrate", "SN123", "--recipe", str(recipe), "--db", str(db), "--json"],
+                     monkeypatch, capsys)
+    assert code == 1
+    assert {c["name"] for c in doc["failed_limits"]} == {"offset_a_mA", "offset_b_mA"}
+    assert doc["trims"] is None and doc["after"] is None
+    assert doc["trims_estimated"] is not None
+    code, match = _run(["verify", "SN123", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 1  # nothing was ever stored for this unit
+    assert match["drive_trims"] == NOMINAL and match["recorded_trims"] is None
+
+
+@pytest.mark.parametrize(
+    ("bench_body", "reason"),
+    [
+        ('[sim]\nunit = "SN124"\n', "reports serial SN124"),
+        ("[sim]\nnoise_ug = 20000\n", "noise"),
+        ('[sim]\n[fixture]\ntangential_axis = "y"\ngravity_axis = "x"\nradius_m = 0.04\n'
+         "gear_ratio = 1.0\n", "gravity"),
+    ],
+    ids=["wrong-unit", "noisy-sensor", "sensor-mounted-otherwise"],
+)
+def test_station_errors_are_recorded_with_their_reason_and_touch_no_trim(
+    tmp_path: Path, db: Path, bench_body: str, reason: str,
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+) -> None:
+    bench = _bench_file(tmp_path, "faulty", bench_body)
+    code, doc = _run(["calibrate", "SN123", "--bench", str(bench), "--db", str(db), "--json"],
+                     monkeypatch, capsys)
+    assert code == 3
+    assert doc["verdict"] == "error" and reason in doc["reason"]
+    assert doc["trims"] is None and doc["after"] is None
+    with Store(db) as store:
+        (run,) = store.history("SN123")
+    assert run.verdict is not None and run.verdict.value == "error"
+    assert run.bench == "faulty" and run.station_id == 7
+
+
+def test_a_bad_recipe_exits_2_before_anything_is_recorded(
+    tmp_path: Path, db: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    recipe = _recipe_variant(tmp_path, "broken", sensor_range_g=3)
+    code, doc = _run(["calibrate", "SN123", "--recipe", str(recipe), "--db", str(db), "--json"],
+                     monkeypatch, capsys)
+    assert code == 2 and doc is None
+    assert "motion.sensor_range_g" in LAST_STDERR[0]
+    assert not db.exists()
+
+
+class _Interrupting:
+    """An operator who presses Ctrl-C as the second sweep round starts."""
+
+    def __init__(self) -> None:
+        self.sweeps = 0
+
+    def step(self, step: Step, detail: str) -> None:
+        if step is Step.SWEEP:
+            self.sweeps += 1
+            if self.sweeps == 2:
+                raise KeyboardInterrupt
+
+    def progress(self, done: int, total: int) -> None:
+        """Nothing to show."""
+
+
+@pytest.fixture
+def drive_states_at_close(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[DriveState]]:
+    """The simulated drive's power state at the moment its bench shuts down."""
+    states: list[DriveState] = []
+
+    class WatchedBench(SimBench):
+        def close(self) -> None:
+            states.append(decode_statusword(self.drive.statusword()))
+            super().close()
+
+    monkeypatch.setattr(benches, "SimBench", WatchedBench)
+    yield states
+
+
+def test_ctrl_c_mid_sweep_is_recorded_as_aborted_with_the_drive_disabled(
+    db: Path, drive_states_at_close: list[DriveState]
+) -> None:
+    station = Station(db, benches.SIM_SPEC, "tester")
+    result = calibrate(station, "SN123", observer=_Interrupting())
+    run = result.run
+    assert run.verdict is not None and run.verdict.value == "aborted"
+    assert run.before is not None and run.trims_stored is False
+    assert run.recording is not None and Path(run.recording).exists()
+    assert drive_states_at_close[0] is not DriveState.OPERATION_ENABLED
+    with Store(db) as store:
+        assert store.history("SN123")[0].verdict == run.verdict
+
+
+def test_recalibrate_needs_a_record_or_force(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, doc = _run(["recalibrate", "SN123", "--reason", "field return", "--db", str(db),
+                      "--json"], monkeypatch, capsys)
+    assert code == 2 and doc is None
+    assert "--force" in LAST_STDERR[0]
+
+
+def test_recalibrate_shows_the_drift_and_warns_past_the_recipe_limit(
+    tmp_path: Path, db: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    recipe = _recipe_variant(tmp_path, "watchful", max_drift_offset_mA=4.0)
+    plain = _bench_file(tmp_path, "plain", "[sim]\neffects = []\n")
+    # The same motor, but its airgap flux is no longer sinusoidal: the optimum moves.
+    aged = _bench_file(tmp_path, "aged", '[sim]\neffects = ["flux_harmonics"]\n')
+    code, first = _run(["calibrate", "SN123", "--recipe", str(recipe), "--bench", str(plain),
+                        "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 0, first["reason"]
+    code, again = _run(["recalibrate", "SN123", "--reason", "noisy in the field", "--recipe",
+                        str(recipe), "--bench", str(aged), "--db", str(db), "--json"],
+                       monkeypatch, capsys)
+    assert code == 0, again["reason"]
+    assert again["kind"] == "recalibrate" and again["service_reason"] == "noisy in the field"
+    assert again["previous_trims"] == first["trims"]
+    assert again["previous_run_id"] == first["run_id"]
+    expected = {k: again["trims"][k] - first["trims"][k] for k in TRIM_KEYS}
+    assert again["drift"] == expected
+    assert abs(expected["offset_a_mA"]) > 4.0
+    assert any("offset A drifted" in w for w in again["warnings"])
+
+
+def test_query_filters_runs_and_writes_csv(
+    tmp_path: Path, db: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    wrong = _bench_file(tmp_path, "wrong", '[sim]\nunit = "SN9"\n')
+    _run(["calibrate", "SN123", "--bench", str(wrong), "--db", str(db), "--json"],
+         monkeypatch, capsys)
+    _run(["calibrate", "SN124", "--bench", str(wrong), "--db", str(db), "--json"],
+         monkeypatch, capsys)
+    code, runs = _run(["query", "--verdict", "error", "--serial", "SN124", "--db", str(db),
+                       "--json"], monkeypatch, capsys)
+    assert code == 0 and [r["serial"] for r in runs] == ["SN124"]
+    code, runs = _run(["query", "--station", "7", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert [r["serial"] for r in runs] == ["SN123", "SN124"]
+    code, runs = _run(["query", "--since", "2999-01-01", "--db", str(db), "--json"],
+                      monkeypatch, capsys)
+    assert runs == []
+    monkeypatch.setattr(sys, "argv", ["station", "query", "--format", "csv", "--db", str(db)])
+    with pytest.raises(SystemExit):
+        main()
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("run_id,serial,kind,started_at")
+    assert len(lines) == 3
