@@ -18,16 +18,14 @@ rehearses a fault.
 from __future__ import annotations
 
 import logging
-import math
 import os
 import tomllib
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
 
 import can
 import canopen
@@ -50,6 +48,7 @@ from station.errors import DeviceError, InputError
 from station.recording import SimulatedClock
 from station.serials import Serial, parse_serial
 from station.sim.bench import SimBench, SimBenchConfig
+from station.tomltable import TomlTable, toml_error
 
 log = logging.getLogger(__name__)
 
@@ -116,111 +115,63 @@ SIM_SPEC = BenchSpec(name=SIM_BENCH, station_id=DEFAULT_STATION_ID, sim=SimSetti
 # --- bench files ------------------------------------------------------------------------------
 
 
-class _Table:
-    """Strict reading of one TOML table: every key taken once, leftovers are errors."""
-
-    def __init__(self, data: Mapping[str, Any], path: str, problems: list[str]) -> None:
-        self._data = dict(data)
-        self._path = path
-        self._problems = problems
-
-    def _where(self, key: str) -> str:
-        return f"{self._path}.{key}" if self._path else key
-
-    def take(self, key: str, kind: type | tuple[type, ...], default: Any = ...) -> Any:
-        if key not in self._data:
-            if default is ...:
-                self._problems.append(f"{self._where(key)}: missing")
-            return None if default is ... else default
-        value = self._data.pop(key)
-        if isinstance(value, bool) and bool not in (kind if isinstance(kind, tuple) else (kind,)):
-            self._problems.append(f"{self._where(key)}: expected a number, got {value!r}")
-            return None if default is ... else default
-        if not isinstance(value, kind):
-            self._problems.append(f"{self._where(key)}: malformed value {value!r}")
-            return None if default is ... else default
-        return value
-
-    def table(self, key: str) -> _Table | None:
-        value = self.take(key, dict, None)
-        return None if value is None else _Table(value, self._where(key), self._problems)
-
-    def check(self, key: str, ok: bool, message: str) -> None:
-        if not ok:
-            self._problems.append(f"{self._where(key)}: {message}")
-
-    def finish(self) -> None:
-        for key in self._data:
-            self._problems.append(f"{self._where(key)}: unknown key")
-
-
-def _axis(table: _Table, key: str) -> Axis | None:
-    text = table.take(key, str)
-    if text is None:
+def _axis(table: TomlTable, key: str) -> Axis | None:
+    """x, y or z, in either case: datasheets print axes in capitals."""
+    text = table.string(key)
+    if not table.valid(key):
         return None
     try:
         return Axis(text.lower())
     except ValueError:
-        table.check(key, False, f"must be x, y or z, not {text!r}")
+        table.problem(key, f"must be x, y or z, got {text!r}")
         return None
 
 
-def _node(table: _Table | None, key: str, default: int) -> int:
-    if table is None:
-        return default
-    node: int = table.take(key, int, default)
-    table.check(key, 1 <= node <= 127, f"node-ID must be 1..127, not {node}")
-    return node
-
-
-def _fixture(table: _Table | None) -> Fixture | None:
+def _fixture(table: TomlTable | None) -> Fixture | None:
     if table is None:
         return None
     tangential = _axis(table, "tangential_axis")
     gravity = _axis(table, "gravity_axis")
-    radius = table.take("radius_m", (int, float))
-    ratio = table.take("gear_ratio", (int, float))
-    for key, value in (("radius_m", radius), ("gear_ratio", ratio)):
-        if value is not None:
-            table.check(key, math.isfinite(value) and value > 0, f"must be positive, not {value}")
-    table.check("gravity_axis", tangential is None or tangential != gravity,
-                "gravity cannot act along the tangential axis of a horizontal load")
+    radius = table.real("radius_m", gt=0)
+    ratio = table.real("gear_ratio", gt=0)
+    if tangential is not None and tangential == gravity:
+        table.problem("gravity_axis", "gravity cannot act along the tangential axis of a "
+                      "load turning about a vertical axis")
     table.finish()
-    if tangential is None or gravity is None or radius is None or ratio is None:
+    if tangential is None or gravity is None:
         return None
-    return Fixture(tangential, gravity, float(radius), float(ratio))
+    return Fixture(tangential, gravity, radius, ratio)
 
 
-def _sim(table: _Table | None) -> SimSettings | None:
+def _sim(table: TomlTable | None) -> SimSettings | None:
     if table is None:
         return None
-    load_text = table.take("load", str, LoadKind.DISK.value)
-    unit = table.take("unit", str, None)
-    effects_list = table.take("effects", list, None)
-    noise = table.take("noise_ug", (int, float), None)
-    seed = table.take("seed", int, 0)
-    table.finish()
-    load = LoadKind.DISK
-    try:
-        load = LoadKind(load_text)
-    except ValueError:
-        table.check("load", False, f"must be one of {[k.value for k in LoadKind]}")
-    if unit is not None:
+    load = table.choice("load", LoadKind) if table.has("load") else LoadKind.DISK
+    unit = table.string("unit") if table.has("unit") else None
+    if unit is not None and table.valid("unit"):
         try:
             unit = parse_serial(unit).label
         except InputError as exc:
-            table.check("unit", False, str(exc))
+            table.problem("unit", str(exc))
     effects: frozenset[Effect] | None = None
-    if effects_list is not None:
-        try:
-            effects = frozenset(Effect(e) for e in effects_list)
-        except ValueError:
-            table.check("effects", False,
-                        f"must name effects from {[e.value for e in Effect]}, not {effects_list}")
-    if noise is not None:
-        table.check("noise_ug", math.isfinite(noise) and noise >= 0, "must be >= 0")
-    return SimSettings(load=load, unit=unit, effects=effects,
-                       noise_ug=None if noise is None else float(noise), seed=seed)
+    if table.has("effects"):
+        names = table.str_array("effects")
+        unknown = sorted(set(names) - {e.value for e in Effect})
+        if unknown:
+            table.problem("effects", f"unknown effects {unknown}; known: "
+                          f"{', '.join(e.value for e in Effect)}")
+        effects = frozenset(Effect(n) for n in names if n not in unknown)
+    noise = table.real("noise_ug", ge=0) if table.has("noise_ug") else None
+    seed = table.integer("seed", 0) if table.has("seed") else 0
+    table.finish()
+    return SimSettings(load=load or LoadKind.DISK, unit=unit, effects=effects, noise_ug=noise,
+                       seed=seed)
+
+
+def _node(table: TomlTable | None, key: str, default: int) -> int:
+    if table is None or not table.has(key):
+        return default
+    return table.integer(key, 1, 127)
 
 
 def parse_bench(text: str, *, source: str) -> BenchSpec:
@@ -228,47 +179,46 @@ def parse_bench(text: str, *, source: str) -> BenchSpec:
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise BenchFileError(f"bench file {source}: not valid TOML: {exc}") from None
+        raise BenchFileError(f"bench file {source}: {toml_error(exc)}") from None
     problems: list[str] = []
-    top = _Table(doc, "", problems)
-    name = top.take("name", str, Path(source).stem)
-    station_id = top.take("station_id", int, DEFAULT_STATION_ID)
-    top.check("station_id", 0 <= station_id <= 0xFFFF, "must fit 0x2101:02 (U16)")
-    transport_text = top.take("transport", str, Transport.CANOPEN.value)
-    period = top.take("sync_period_s", (int, float), DEFAULT_SYNC_PERIOD_S)
-    top.check("sync_period_s", 1e-4 <= period <= 0.1, "must be 0.0001..0.1 s")
-    bus_table = top.take("bus", dict, None)
-    nodes = top.table("nodes")
+    top = TomlTable(problems, "", doc)
+    name = top.string("name", nonempty=True) if top.has("name") else Path(source).stem
+    station_id = (
+        top.integer("station_id", 0, 0xFFFF, note="0x2101:02 is a U16")
+        if top.has("station_id") else DEFAULT_STATION_ID
+    )
+    transport = top.choice("transport", Transport) if top.has("transport") else Transport.CANOPEN
+    if transport is Transport.MODBUS:
+        top.problem("transport", "Modbus drives are not supported by this station version yet")
+    period = (
+        top.real("sync_period_s", ge=1e-4, le=0.1)
+        if top.has("sync_period_s") else DEFAULT_SYNC_PERIOD_S
+    )
+    bus_settings = top.mapping("bus")
+    nodes = top.optional_table("nodes")
     drive_node, sensor_node = _node(nodes, "drive", 1), _node(nodes, "sensor", 16)
     if nodes is not None:
+        if nodes.valid("drive", "sensor") and drive_node == sensor_node:
+            nodes.problem("sensor", "the drive and the sensor need different node-IDs")
         nodes.finish()
-    fixture = _fixture(top.table("fixture"))
-    sim = _sim(top.table("sim"))
-    top.finish()
-    top.check("nodes", drive_node != sensor_node, "drive and sensor need different node-IDs")
-    transport = Transport.CANOPEN
-    try:
-        transport = Transport(transport_text)
-    except ValueError:
-        top.check("transport", False, f"must be one of {[t.value for t in Transport]}")
-    top.check("transport", transport is Transport.CANOPEN,
-              "Modbus drives are not supported by this station version yet")
+    fixture = _fixture(top.optional_table("fixture"))
+    sim = _sim(top.optional_table("sim"))
     bus: BusConfig | None = None
-    if bus_table is not None:
+    if bus_settings is not None:
         try:
-            bus = BusConfig.from_mapping(bus_table)
+            bus = BusConfig.from_mapping(bus_settings)
         except InputError as exc:
-            top.check("bus", False, str(exc))
-    if sim is not None:
-        top.check("bus", bus is None or bus.interface == VIRTUAL_INTERFACE,
-                  "a simulated bench lives on python-can's virtual bus")
-    else:
-        top.check("fixture", fixture is not None, "a real bench must describe its fixture")
+            top.problem("bus", str(exc))
+    if sim is not None and bus is not None and bus.interface != VIRTUAL_INTERFACE:
+        top.problem("bus", "a simulated bench lives on python-can's virtual bus")
+    if sim is None and not top.has("fixture"):
+        top.problem("fixture", "missing: a real bench must describe its fixture")
+    top.finish()
     if problems:
         raise BenchFileError(f"bench file {source}:\n  " + "\n  ".join(problems))
-    return BenchSpec(name=name, station_id=station_id, transport=transport, bus=bus,
-                     drive_node=drive_node, sensor_node=sensor_node, sync_period_s=float(period),
-                     fixture=fixture, sim=sim, source=source)
+    return BenchSpec(name=name, station_id=station_id, transport=transport or Transport.CANOPEN,
+                     bus=bus, drive_node=drive_node, sensor_node=sensor_node,
+                     sync_period_s=period, fixture=fixture, sim=sim, source=source)
 
 
 def load_bench(name_or_path: str | None = None) -> BenchSpec:

@@ -11,13 +11,11 @@ error per attempt.
 
 from __future__ import annotations
 
-import difflib
 import hashlib
-import math
 import os
 import re
 import tomllib
-from collections.abc import Collection, Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from enum import StrEnum
 from importlib.resources import files
@@ -26,6 +24,7 @@ from typing import Final
 
 from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY
 from station.errors import InputError
+from station.tomltable import TomlTable, toml_error
 
 RECIPE_FORMAT: Final = "station-recipe/1"
 DEFAULT_RECIPE: Final = "default"
@@ -42,8 +41,6 @@ MAX_GAIN_STEP: Final = 5000
 _NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
 # ASCII digits only: ``\d`` would let other scripts' digits into a version.
 _VERSION = re.compile(r"[0-9]+(\.[0-9]+)*")
-# Python 3.11's TOMLDecodeError carries its position only in the message.
-_TOML_POSITION = re.compile(r"\s*\(at line (\d+), column (\d+)\)$")
 
 
 class RecipeError(InputError):
@@ -171,216 +168,7 @@ def _keys(cls: type) -> tuple[str, ...]:
     return tuple(f.name for f in fields(cls))
 
 
-_TOML_TYPES: Final[Mapping[str, str]] = {
-    "bool": "a boolean",
-    "int": "an integer",
-    "float": "a float",
-    "str": "a string",
-    "list": "an array",
-    "dict": "a table",
-    "datetime": "a date-time",
-    "date": "a date",
-    "time": "a time",
-}
-
-
-def _toml_type(value: object) -> str:
-    """Name a value's type as the recipe's author wrote it, not as Python holds it."""
-    return _TOML_TYPES.get(type(value).__name__, type(value).__name__)
-
-
-def _interval(low: float | None, low_open: bool, high: float | None, high_open: bool) -> str:
-    if low is not None and high is not None:
-        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
-    if low is not None:
-        return f"{'>' if low_open else '>='} {low:g}"
-    return f"{'<' if high_open else '<='} {high if high is not None else math.inf:g}"
-
-
-class _Table:
-    """Reads one TOML table field by field, recording each problem instead of
-    raising, so that one pass over a recipe finds all of them.
-
-    Readers return a placeholder when a value is unusable; the placeholder
-    never escapes because any problem makes the parse fail. Cross-field rules
-    ask ``valid`` first, so a bad value is reported once, not again by every
-    rule that uses it.
-    """
-
-    def __init__(
-        self, problems: list[str], path: str, data: Mapping[str, object], *, absent: bool = False
-    ) -> None:
-        self._problems = problems
-        self._path = path
-        self._data = data
-        self._absent = absent  # the table itself is missing: its keys are not reported
-        self._read: set[str] = set()
-        self._bad: set[str] = set()
-
-    def name(self, key: str) -> str:
-        return f"{self._path}.{key}" if self._path else key
-
-    def problem(self, key: str, message: str) -> None:
-        self._bad.add(key)
-        self._problems.append(f"{self.name(key)}: {message}")
-
-    def valid(self, *keys: str) -> bool:
-        return not self._bad.intersection(keys)
-
-    def _raw(self, key: str) -> object | None:
-        self._read.add(key)
-        if key not in self._data:
-            if self._absent:
-                self._bad.add(key)
-            else:
-                self.problem(key, "missing")
-            return None
-        return self._data[key]
-
-    def _wrong_type(self, key: str, expected: str, value: object) -> None:
-        self.problem(key, f"expected {expected}, got {_toml_type(value)} {value!r}")
-
-    def string(
-        self, key: str, *, pattern: re.Pattern[str] | None = None, nonempty: bool = False
-    ) -> str:
-        value = self._raw(key)
-        if value is None:
-            return ""
-        if not isinstance(value, str):
-            self._wrong_type(key, "a string", value)
-            return ""
-        if nonempty and not value:
-            self.problem(key, "must not be empty")
-        elif pattern is not None and not pattern.fullmatch(value):
-            self.problem(key, f"{value!r} does not match {pattern.pattern}")
-        return value
-
-    def integer(
-        self,
-        key: str,
-        low: int | None = None,
-        high: int | None = None,
-        *,
-        choices: Collection[int] | None = None,
-        note: str = "",
-    ) -> int:
-        value = self._raw(key)
-        if value is None:
-            return 0
-        # bool is an int to Python, never to a recipe; a float is refused even when
-        # integral, because 4.0 periods suggests the author meant something else.
-        if isinstance(value, bool) or not isinstance(value, int):
-            self._wrong_type(key, "an integer", value)
-            return 0
-        self.check_int(key, value, low, high, choices=choices, note=note)
-        return value
-
-    def check_int(
-        self,
-        key: str,
-        value: int,
-        low: int | None,
-        high: int | None,
-        *,
-        choices: Collection[int] | None = None,
-        note: str = "",
-    ) -> None:
-        suffix = f" ({note})" if note else ""
-        if choices is not None and value not in choices:
-            listed = ", ".join(str(c) for c in choices)
-            self.problem(key, f"must be one of {listed}, got {value}{suffix}")
-        elif (low is not None and value < low) or (high is not None and value > high):
-            if low is not None and high is not None:
-                bounds = f"in {low}..{high}"
-            else:
-                bounds = f">= {low}" if low is not None else f"<= {high}"
-            self.problem(key, f"must be {bounds}, got {value}{suffix}")
-
-    def real(
-        self,
-        key: str,
-        *,
-        gt: float | None = None,
-        ge: float | None = None,
-        lt: float | None = None,
-        le: float | None = None,
-        note: str = "",
-    ) -> float:
-        value = self._raw(key)
-        if value is None:
-            return 0.0
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            self._wrong_type(key, "a number", value)
-            return 0.0
-        try:
-            number = float(value)
-        except OverflowError:  # TOML integers are unbounded
-            number = math.inf
-        if not math.isfinite(number):
-            self.problem(key, f"must be finite, got {value!r}")
-            return 0.0
-        low, high = (gt if gt is not None else ge), (lt if lt is not None else le)
-        if (
-            (gt is not None and number <= gt)
-            or (ge is not None and number < ge)
-            or (lt is not None and number >= lt)
-            or (le is not None and number > le)
-        ):
-            bounds = _interval(low, gt is not None, high, lt is not None)
-            suffix = f" ({note})" if note else ""
-            self.problem(key, f"must be {bounds}, got {value!r}{suffix}")
-        return number
-
-    def int_array(self, key: str) -> tuple[int, ...]:
-        value = self._raw(key)
-        if value is None:
-            return ()
-        if not isinstance(value, list):
-            self._wrong_type(key, "an array of integers", value)
-            return ()
-        items: list[int] = []
-        for i, item in enumerate(value):
-            if isinstance(item, bool) or not isinstance(item, int):
-                self._wrong_type(f"{key}[{i}]", "an integer", item)
-                self._bad.add(key)
-            else:
-                items.append(item)
-        return tuple(items)
-
-    def table(self, key: str) -> _Table:
-        value = self._raw(key)
-        if isinstance(value, dict):
-            return _Table(self._problems, self.name(key), value)
-        if value is not None:
-            self._wrong_type(key, "a table", value)
-        return _Table(self._problems, self.name(key), {}, absent=True)
-
-    def method(self, key: str) -> RecipeMethod | None:
-        value = self.string(key)
-        if not self.valid(key):
-            return None
-        try:
-            return RecipeMethod(value)
-        except ValueError:
-            listed = ", ".join(repr(m.value) for m in RecipeMethod)
-            self.problem(key, f"must be one of {listed}, got {value!r}")
-            return None
-
-    # Called after every reader of the table, so ``_read`` holds every known key.
-    def finish(self, foreign: Mapping[str, str] | None = None) -> None:
-        """Report every key nobody read: a typo must not silently become a default."""
-        for key in self._data:
-            if key in self._read:
-                continue
-            if foreign and key in foreign:
-                self.problem(key, foreign[key])
-                continue
-            close = difflib.get_close_matches(key, self._read, n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            self.problem(key, f"unknown key{hint}")
-
-
-def _read_product(t: _Table) -> Product:
+def _read_product(t: TomlTable) -> Product:
     product = Product(
         name=t.string("name", nonempty=True),
         rated_current_mA=t.integer("rated_current_mA", 1, 65535),
@@ -391,7 +179,7 @@ def _read_product(t: _Table) -> Product:
     return product
 
 
-def _read_motion(t: _Table, rated: int | None) -> Motion:
+def _read_motion(t: TomlTable, rated: int | None) -> Motion:
     motion = Motion(
         electrical_hz=t.real("electrical_hz", gt=0, le=50),
         amplitude_mA=t.integer(
@@ -409,7 +197,7 @@ def _read_motion(t: _Table, rated: int | None) -> Motion:
     return motion
 
 
-def _span(t: _Table, keys: tuple[str, str], values: tuple[int, int], through: int) -> None:
+def _span(t: TomlTable, keys: tuple[str, str], values: tuple[int, int], through: int) -> None:
     """A [min, max] pair must be ordered and contain ``through`` (nominal): the
     paper's parabolas need the untrimmed unit's own ripple, and gain limits
     that exclude 10000 would fail every unit that needs no gain trim."""
@@ -429,7 +217,7 @@ def _neg(value: int | None) -> int | None:
     return None if value is None else -value
 
 
-def _read_paper_sweep(t: _Table, rated: int | None) -> PaperSweep:
+def _read_paper_sweep(t: TomlTable, rated: int | None) -> PaperSweep:
     # The drive's offset trim range is ±rated/2 (ICD.md, 0x2100:01/02).
     half = rated // 2 if rated is not None else None
     offset_note = "the drive's offset range: half of product.rated_current_mA"
@@ -451,7 +239,7 @@ def _read_paper_sweep(t: _Table, rated: int | None) -> PaperSweep:
     return sweep
 
 
-def _read_coherent_sweep(t: _Table, rated: int | None) -> CoherentSweep:
+def _read_coherent_sweep(t: TomlTable, rated: int | None) -> CoherentSweep:
     sweep = CoherentSweep(
         offset_steps_mA=t.int_array("offset_steps_mA"), gain_steps=t.int_array("gain_steps")
     )
@@ -483,7 +271,7 @@ def _read_coherent_sweep(t: _Table, rated: int | None) -> CoherentSweep:
 
 
 def _read_sweep(
-    t: _Table, method: RecipeMethod | None, rated: int | None
+    t: TomlTable, method: RecipeMethod | None, rated: int | None
 ) -> PaperSweep | CoherentSweep:
     sweep: PaperSweep | CoherentSweep
     if method is RecipeMethod.PAPER:
@@ -500,7 +288,7 @@ def _read_sweep(
     return sweep
 
 
-def _read_self_check(t: _Table) -> SelfCheck:
+def _read_self_check(t: TomlTable) -> SelfCheck:
     self_check = SelfCheck(
         standstill_s=t.real("standstill_s", gt=0, le=10),
         gravity_tolerance_mps2=t.real("gravity_tolerance_mps2", gt=0, lt=STANDARD_GRAVITY),
@@ -510,13 +298,13 @@ def _read_self_check(t: _Table) -> SelfCheck:
     return self_check
 
 
-def _read_verification(t: _Table) -> Verification:
+def _read_verification(t: TomlTable) -> Verification:
     verification = Verification(dwell_periods=t.integer("dwell_periods", 3, 10000))
     t.finish()
     return verification
 
 
-def _read_limits(t: _Table, rated: int | None) -> Limits:
+def _read_limits(t: TomlTable, rated: int | None) -> Limits:
     limits = Limits(
         max_h1_after_mps2=t.real("max_h1_after_mps2", gt=0),
         max_h2_after_mps2=t.real("max_h2_after_mps2", gt=0),
@@ -543,13 +331,7 @@ def _read_limits(t: _Table, rated: int | None) -> Limits:
 
 
 def _decode_error(source: str, exc: tomllib.TOMLDecodeError) -> RecipeError:
-    message = str(exc)
-    position = _TOML_POSITION.search(message)
-    if position is None:
-        return RecipeError(source, [f"invalid TOML: {message}"])
-    line, column = position.groups()
-    detail = message[: position.start()]
-    return RecipeError(source, [f"line {line}, column {column}: invalid TOML: {detail}"])
+    return RecipeError(source, [toml_error(exc)])
 
 
 def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None = None) -> Recipe:
@@ -562,7 +344,7 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
         raise _decode_error(source, exc) from None
 
     problems: list[str] = []
-    root = _Table(problems, "", data)
+    root = TomlTable(problems, "", data)
     recipe_format = root.string("format")
     if root.valid("format") and recipe_format != RECIPE_FORMAT:
         root.problem("format", f"must be {RECIPE_FORMAT!r}, got {recipe_format!r}")
@@ -571,7 +353,7 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
         root.problem("name", f"{name!r} must equal the file's name {expected_name!r}")
     version = root.string("version", pattern=_VERSION)
     description = root.string("description")
-    method = root.method("method")
+    method = root.choice("method", RecipeMethod)
 
     # Product first: the drive's ranges in the other tables follow from its
     # rated current, and only a valid one may bound them.
