@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from rich import box
+from rich.align import Align
 from rich.console import Group, RenderableType
 from rich.panel import Panel
 from rich.table import Table
@@ -36,21 +37,22 @@ def _ripple_text(ripple: dict[str, float] | None) -> str:
 
 def _limit_text(check: dict[str, Any]) -> str:
     value = check["value"]
+    note = f" ({check['note']})" if check["note"] else ""
+    if value is None:
+        return (check["note"] or "—") if check["passed"] is not False else f"no{note}"
     bound = " .. ".join(
         "" if b is None else f"{b:g}" for b in (check["low"], check["high"])
     ).strip(" .")
-    shown = "—" if value is None else f"{value:.4g}"
-    unit = f" {check['unit']}" if check["unit"] else ""
-    note = f" ({check['note']})" if check["note"] else ""
-    return f"{check['name']} = {shown}{unit}, limit {bound or 'none'}{note}"
+    unit = f" {check['unit']}" if check["unit"] and check["unit"] != "1/10000" else ""
+    shown = f"{value:.0f}" if abs(value) >= 1000 else f"{value:.4g}"
+    return f"{shown}{unit}, limit {bound or 'none'}{note}"
 
 
 def banner(verdict: str | None, serial: str, reason: str | None) -> Panel:
     """The one thing an operator must not misread: big, coloured, with the reason."""
     word = (verdict or "unknown").upper()
-    text = Text(f"  {serial}: {word}  ", style=_VERDICT_STYLE.get(verdict or "", "bold"),
-                justify="center")
-    body: list[RenderableType] = [text]
+    text = Text(f"  {serial}: {word}  ", style=_VERDICT_STYLE.get(verdict or "", "bold"))
+    body: list[RenderableType] = [Align.center(text)]
     if reason and verdict != "pass":
         body.append(Text(reason, justify="center"))
     return Panel(Group(*body), expand=True)
@@ -77,7 +79,7 @@ def run_view(doc: dict[str, Any]) -> Group:
     table.add_row("ripple after", _ripple_text(doc["after"]))
     for check in doc["limits"]:
         mark = {True: "[green]ok[/]", False: "[red]FAILED[/]", None: "[dim]n/a[/]"}[check["passed"]]
-        table.add_row(f"limit {check['name']}", f"{mark} {_limit_text(check)}")
+        table.add_row(check["name"], f"{mark} {_limit_text(check)}")
     if doc["motion_s"] is not None:
         table.add_row("motion time", f"{doc['motion_s']:.1f} s")
     table.add_row("recording", doc["recording"] or "—")
@@ -104,7 +106,8 @@ def runs_table(docs: Sequence[dict[str, Any]], title: str, *, one_unit: bool = F
     if one_unit:
         columns.remove("serial")
     for column in columns:
-        table.add_column(column, no_wrap=column != "failed")
+        # Limit names have no spaces to wrap at: fold them rather than cut them.
+        table.add_column(column, no_wrap=column != "failed", overflow="fold")
     for d in docs:
         after = d["after"]
         cells = {
@@ -135,8 +138,8 @@ def verify_view(doc: dict[str, Any]) -> Group:
                   f"station {record['station_id']}, count {record['count']}")
     word = "match" if doc["match"] else "mismatch"
     style = "bold white on green" if doc["match"] else "bold white on red"
-    return Group(table, Panel(Text(f"  {doc['serial']}: {word.upper()}  ", style=style,
-                                   justify="center")))
+    return Group(table, Panel(Align.center(Text(f"  {doc['serial']}: {word.upper()}  ",
+                                                style=style))))
 
 
 def _number(value: float | None, digits: int = 2) -> str:

@@ -1,0 +1,174 @@
+"""QA's commands on a database of known runs: statistics, history as people read it, recipes.
+
+The runs are written with the store directly (no bench), so the expected
+means, deviations and Cpk can be computed by hand.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import statistics
+import sys
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from station.cli import main
+from station.core import Trims
+from station.recipes import load_recipe
+from station.runs import LimitCheck, LimitName, RecipeRef, Ripple, Run, RunKind, Verdict
+from station.service import statistics as recipe_statistics
+from station.store import RunFilter, Store
+
+OFFSETS_A = (60.0, 64.0, 68.0, 72.0)
+H1_AFTER = (0.004, 0.006, 0.005, 0.007)
+
+
+def _run(serial: str, verdict: Verdict, offset_a: float, h1: float, started: datetime) -> Run:
+    recipe = load_recipe("default")
+    run = Run(
+        serial=serial, kind=RunKind.CALIBRATE,
+        recipe=RecipeRef(recipe.name, recipe.version, recipe.sha256), station_id=3,
+        operator="qa", software_version="test", bench="sim", started_at=started,
+    )
+    run.verdict = verdict
+    run.reason = "all limits met" if verdict is Verdict.PASS else "failed h1_after_mps2"
+    run.finished_at = started + timedelta(seconds=20)
+    run.trims_before = Trims()
+    run.trims_after = Trims(offset_a, -20.0, 9950.0, 10050.0)
+    run.trims_stored = True
+    run.before = Ripple(1.2, 0.5)
+    run.after = Ripple(h1, 0.01)
+    if verdict is Verdict.FAIL:
+        run.limits = (LimitCheck(LimitName.H1_AFTER, h1, None, 0.005, "m/s²", False),)
+    return run
+
+
+@pytest.fixture
+def db(tmp_path: Path) -> Path:
+    path = tmp_path / "qa.db"
+    text = load_recipe("default").text
+    start = datetime(2026, 3, 1, 8, 0, tzinfo=UTC)
+    with Store(path) as store:
+        for i, (offset, h1) in enumerate(zip(OFFSETS_A, H1_AFTER, strict=True)):
+            verdict = Verdict.PASS if h1 <= 0.0065 else Verdict.FAIL
+            run = _run(f"SN{500 + i}", verdict, offset, h1, start + timedelta(hours=i))
+            store.begin_run(run, text)
+            store.finish_run(run)
+        errored = _run("SN599", Verdict.ERROR, 0.0, 0.0, start + timedelta(days=1))
+        errored.trims_after, errored.after, errored.trims_stored = None, None, False
+        store.begin_run(errored, text)
+        store.finish_run(errored)
+    return path
+
+
+def _cli(args: list[str], monkeypatch: pytest.MonkeyPatch,
+         capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    monkeypatch.setattr(sys, "argv", ["station", *args])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    return int(stop.value.code or 0), capsys.readouterr().out
+
+
+def test_statistics_give_mean_std_and_cpk_against_the_recipes_limits(db: Path) -> None:
+    (stats,) = recipe_statistics(db, RunFilter())
+    limits = load_recipe("default").limits
+    assert stats.runs == 5
+    assert stats.verdicts[Verdict.PASS] == 3 and stats.verdicts[Verdict.FAIL] == 1
+    assert stats.verdicts[Verdict.ERROR] == 1
+    offset = stats.quantities["offset_a_mA"]
+    mean, std = statistics.mean(OFFSETS_A), statistics.stdev(OFFSETS_A)
+    assert offset.n == 4  # the error measured nothing and does not count
+    assert offset.mean == pytest.approx(mean) and offset.std == pytest.approx(std)
+    bound = limits.offset_bound_mA
+    assert offset.cpk == pytest.approx(min(bound - mean, mean + bound) / (3 * std))
+    h1 = stats.quantities["h1_after_mps2"]
+    h1_mean, h1_std = statistics.mean(H1_AFTER), statistics.stdev(H1_AFTER)
+    assert h1.low is None and h1.high == limits.max_h1_after_mps2
+    assert h1.cpk == pytest.approx((limits.max_h1_after_mps2 - h1_mean) / (3 * h1_std))
+
+
+def test_statistics_follow_the_filters(db: Path) -> None:
+    (stats,) = recipe_statistics(
+        db, RunFilter(until=datetime(2026, 3, 1, 9, 30, tzinfo=UTC))
+    )
+    assert stats.runs == 2
+    assert recipe_statistics(db, RunFilter(recipe="paper")) == []
+
+
+def test_stats_command_prints_json_per_recipe_version(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out = _cli(["stats", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 0
+    (doc,) = json.loads(out)
+    assert doc["recipe"] == "default" and doc["recipe_sha256"] == load_recipe("default").sha256
+    assert doc["verdicts"] == {"pass": 3, "fail": 1, "error": 1, "aborted": 0}
+    offset: dict[str, Any] = doc["quantities"]["offset_a_mA"]
+    assert offset["n"] == 4 and math.isclose(offset["mean"], statistics.mean(OFFSETS_A))
+    code, out = _cli(["stats", "--db", str(db)], monkeypatch, capsys)
+    assert "Cpk" in out and "offset_a_mA" in out
+
+
+def test_history_table_shows_each_run_for_people(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("COLUMNS", "80")
+    code, out = _cli(["history", "SN503", "--db", str(db)], monkeypatch, capsys)
+    assert code == 0
+    assert "fail" in out and "h1_after_" in out and "+72/-20" in out
+    assert max(len(line) for line in out.splitlines()) <= 80
+
+
+def test_query_limit_keeps_the_newest_runs_oldest_first(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out = _cli(["query", "--limit", "2", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 0
+    assert [r["serial"] for r in json.loads(out)] == ["SN503", "SN599"]
+
+
+def test_an_unparseable_date_is_a_usage_error(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out = _cli(["query", "--since", "last tuesday", "--db", str(db)], monkeypatch, capsys)
+    assert code == 2 and out == ""
+
+
+def test_recipes_command_lists_the_shipped_recipes(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out = _cli(["recipes", "--json"], monkeypatch, capsys)
+    assert code == 0
+    by_name = {d["name"]: d for d in json.loads(out)}
+    assert set(by_name) >= {"default", "paper"}
+    assert by_name["paper"]["method"] == "paper" and by_name["default"]["method"] == "coherent"
+
+
+def test_an_error_run_shows_the_operator_an_error_banner_with_its_reason(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bench = tmp_path / "wrong.toml"
+    bench.write_text('[sim]\nunit = "SN77"\n', encoding="utf-8")
+    monkeypatch.setenv("COLUMNS", "100")
+    code, out = _cli(["calibrate", "SN123", "--bench", str(bench), "--db",
+                      str(tmp_path / "s.db")], monkeypatch, capsys)
+    assert code == 3
+    assert "SN123: ERROR" in out and "reports serial SN77" in " ".join(out.split())
+
+
+def test_a_stored_run_with_an_unknown_limit_name_still_reads_back(db: Path) -> None:
+    """A newer station may have written limits this version does not know."""
+    with Store(db) as store:
+        run = store.history("SN503")[0]
+        future = replace(run, run_id=None, limits=(
+            LimitCheck("thermal_drift_mA", 1.0, None, 2.0, "mA", True),
+        ))
+        store.begin_run(future, load_recipe("default").text)
+        store.finish_run(future)
+        again = store.history("SN503")[-1]
+    assert again.limits[0].name == "thermal_drift_mA"
