@@ -42,6 +42,7 @@ class Outcome:
     motion_s: float
     offset_error_mA: float  # worst of the two offsets
     gain_error: float
+    reason: str
 
 
 def _calibrate_one(serial: str, recipe: str) -> Outcome:
@@ -53,7 +54,8 @@ def _calibrate_one(serial: str, recipe: str) -> Outcome:
     truth = optimal_trims(derive_unit(serial))
     got = run.trims_after
     if got is None or run.motion_s is None:
-        return Outcome(serial, recipe, str(run.verdict), math.nan, math.inf, math.inf)
+        return Outcome(serial, recipe, str(run.verdict), math.nan, math.inf, math.inf,
+                       run.reason or "")
     return Outcome(
         serial,
         recipe,
@@ -61,6 +63,7 @@ def _calibrate_one(serial: str, recipe: str) -> Outcome:
         run.motion_s,
         max(abs(got.offset_a_mA - truth.offset_a_mA), abs(got.offset_b_mA - truth.offset_b_mA)),
         max(abs(got.gain_a - truth.gain_a), abs(got.gain_b - truth.gain_b)),
+        run.reason or "",
     )
 
 

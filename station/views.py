@@ -44,7 +44,12 @@ def _limit_text(check: dict[str, Any]) -> str:
         "" if b is None else f"{b:g}" for b in (check["low"], check["high"])
     ).strip(" .")
     unit = f" {check['unit']}" if check["unit"] and check["unit"] != "1/10000" else ""
-    shown = f"{value:.0f}" if abs(value) >= 1000 else f"{value:.4g}"
+    if abs(value) >= 1000:
+        shown = f"{value:.0f}"
+    elif 0.99 <= abs(value) < 1:  # R²: "1" would hide what the limit judges
+        shown = f"{value:.6f}"
+    else:
+        shown = f"{value:.4g}"
     return f"{shown}{unit}, limit {bound or 'none'}{note}"
 
 

@@ -110,7 +110,8 @@ def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> Non
     recipe = load_recipe(DEFAULT_RECIPE)
     reference = load_recipe("paper")
     assert recipe.method is RecipeMethod.COHERENT
-    assert recipe.sweep == CoherentSweep(offset_steps_mA=(100, 30), gain_steps=(1000, 300))
+    assert recipe.sweep == CoherentSweep(offset_steps_mA=(100, 30, 10),
+                                         gain_steps=(1000, 300, 100))
     assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (8, 4)
     assert recipe.hold_periods() == 12
     assert recipe.product == reference.product
@@ -497,9 +498,9 @@ def test_gain_ranges_must_be_ordered_and_contain_unity(
 
 def test_coherent_arrays_of_unequal_length_are_refused() -> None:
     data = coherent()
-    data["sweep"]["gain_steps"] = [1000, 300, 100]
+    data["sweep"]["gain_steps"] = [1000, 300]
     assert only_problem(data) == (
-        "sweep.gain_steps: must have as many rounds as sweep.offset_steps_mA (2), got 3"
+        "sweep.gain_steps: must have as many rounds as sweep.offset_steps_mA (3), got 2"
     )
 
 
