@@ -4,10 +4,12 @@ Each unit (its own amplifier errors and concealed effects, from its serial)
 is calibrated twice, once per recipe, each time from a fresh EEPROM, through
 the whole station path (``service.calibrate``: bench, procedure, database).
 Motion time is the simulated time the SYNC clock ran, which is what the
-calibration costs on a line; accuracy is the distance of the trims stored in
-the drive from the plant's own optimum (which includes every effect the unit
-has). Units run two at a time, one per core: each is a separate process with
-its own virtual bus, and the figures do not depend on wall-clock time.
+calibration costs on a line; accuracy is the distance of each recipe's
+estimate from the plant's own optimum (which includes every effect the unit
+has), whether or not the recipe's limits then let it be stored; how many
+units each recipe passes is reported beside. Units run two at a time, one per
+core: each is a separate process with its own virtual bus, and the figures do
+not depend on wall-clock time.
 """
 
 from __future__ import annotations
@@ -52,15 +54,18 @@ def _calibrate_one(serial: str, recipe: str) -> Outcome:
         station = Station(Path(home) / "station.db", SIM_SPEC, "bench")
         run = calibrate(station, serial, recipe).run
     truth = optimal_trims(derive_unit(serial))
-    got = run.trims_after
-    if got is None or run.motion_s is None:
-        return Outcome(serial, recipe, str(run.verdict), math.nan, math.inf, math.inf,
+    # The estimate, not the stored trims: a recipe whose limits refuse to store a
+    # unit's trims still had an estimate, and each method is judged the same way.
+    got = run.trims_estimated
+    motion = run.motion_s if run.motion_s is not None else math.nan
+    if got is None:
+        return Outcome(serial, recipe, str(run.verdict), motion, math.inf, math.inf,
                        run.reason or "")
     return Outcome(
         serial,
         recipe,
         str(run.verdict),
-        run.motion_s,
+        motion,
         max(abs(got.offset_a_mA - truth.offset_a_mA), abs(got.offset_b_mA - truth.offset_b_mA)),
         max(abs(got.gain_a - truth.gain_a), abs(got.gain_b - truth.gain_b)),
         run.reason or "",

@@ -184,14 +184,16 @@ class _Calibration:
     # -- the whole run ------------------------------------------------------------------------
 
     def run(self) -> None:
-        metadata = self._identify()
+        metadata = self._metadata()
         capture = FrameCapture(metadata)
         self.capture = capture
         writer = RecordingWriter(self.request.recording, metadata,
                                  clock=self.session.recording_clock())
         start_cycles = self.session.clock.cycles
         try:
+            # Recorded from the identity check on: a refused unit leaves its traces too.
             with self.session.listening(writer, capture):
+                self._identify(metadata)
                 self._calibrate()
         finally:
             self.run_record.motion_s = (self.session.clock.cycles - start_cycles) * self.period_s
@@ -208,23 +210,10 @@ class _Calibration:
         self.run_record.recording = str(path)
         self.run_record.recording_sha256 = sha256_of(path)
 
-    def _identify(self) -> RecordingMetadata:
-        """Refuse the wrong unit or the wrong product before anything moves."""
-        self.observer.step(Step.IDENTIFY, str(self.request.serial))
+    def _metadata(self) -> RecordingMetadata:
+        """What the recording's metadata needs, read from the devices (ICD.md §5)."""
         drive, sensor, product = self.drive, self.session.sensor, self.recipe.product
-        check_identity(drive, self.request.serial)
         microsteps = drive.microsteps_per_fullstep()
-        rated = drive.rated_current_mA()
-        if microsteps != product.microsteps or rated != product.rated_current_mA:
-            raise ProductMismatch(
-                drive.name,
-                f"runs {microsteps} microsteps per full step at {rated} mA rated; recipe "
-                f"{self.recipe.name} is for {product.name} ({product.microsteps} microsteps, "
-                f"{product.rated_current_mA} mA)",
-            )
-        self.run_record.trims_before = drive.read_trims()
-        self.velocity = velocity_for(self.recipe.motion.electrical_hz, microsteps)
-        self.electrical_hz = self.velocity / (4.0 * microsteps)
         sensor.set_range_g(self.recipe.motion.sensor_range_g)
         fixture = self.session.fixture
         run = self.run_record
@@ -235,7 +224,7 @@ class _Calibration:
             sync_period_s=self.period_s,
             microsteps_per_fullstep=microsteps,
             rotor_teeth=product.rotor_teeth,
-            rated_current_mA=rated,
+            rated_current_mA=drive.rated_current_mA(),
             sensor_lsb_mps2=sensor.lsb_mps2(),
             tangential_axis=fixture.tangential_axis,
             sensor_radius_m=fixture.radius_m,
@@ -252,6 +241,24 @@ class _Calibration:
                 "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             },
         )
+
+    def _identify(self, metadata: RecordingMetadata) -> None:
+        """Refuse the wrong unit or the wrong product before anything moves."""
+        self.observer.step(Step.IDENTIFY, str(self.request.serial))
+        drive, product = self.drive, self.recipe.product
+        check_identity(drive, self.request.serial)
+        microsteps = metadata.microsteps_per_fullstep
+        rated = round(metadata.rated_current_mA)
+        if microsteps != product.microsteps or rated != product.rated_current_mA:
+            raise ProductMismatch(
+                drive.name,
+                f"runs {microsteps} microsteps per full step at {rated} mA rated; recipe "
+                f"{self.recipe.name} is for {product.name} ({product.microsteps} microsteps, "
+                f"{product.rated_current_mA} mA)",
+            )
+        self.run_record.trims_before = drive.read_trims()
+        self.velocity = velocity_for(self.recipe.motion.electrical_hz, microsteps)
+        self.electrical_hz = self.velocity / (4.0 * microsteps)
 
     def _calibrate(self) -> None:
         self._self_check()

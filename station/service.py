@@ -27,7 +27,13 @@ from station.limits import drift, drift_warnings
 from station.paths import station_home
 from station.procedure import CalibrationRequest, Observer, calibrate_unit, check_identity
 from station.qa import Capability, capability
-from station.recipes import DEFAULT_RECIPE, Recipe, load_recipe, parse_recipe
+from station.recipes import (
+    DEFAULT_RECIPE,
+    Recipe,
+    available_recipes,
+    load_recipe,
+    parse_recipe,
+)
 from station.runs import RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
 from station.store import RunFilter, Store, VerificationRecord
@@ -97,8 +103,8 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
                 observer: Observer | None = None) -> Calibration:
     """Field service: calibrate a unit that has a record, and show how far it drifted.
 
-    Without ``--recipe`` the unit is recalibrated with the current version of
-    the recipe it was last calibrated with.
+    Without ``--recipe`` the unit is recalibrated with the recipe it was last
+    calibrated with (see ``_recipe_of``).
     """
     serial = parse_serial(serial_label)
     if not reason.strip():
@@ -110,8 +116,10 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
                 f"{serial} has no recorded calibration at this station's database "
                 f"({station.db_path}); use --force to calibrate it anyway"
             )
-        name = recipe_name or (previous.recipe.name if previous is not None else DEFAULT_RECIPE)
-        recipe = load_recipe(name)
+        if recipe_name is not None or previous is None:
+            recipe = load_recipe(recipe_name or DEFAULT_RECIPE)
+        else:
+            recipe = _recipe_of(store, previous)
         run = _new_run(station, serial, recipe, RunKind.RECALIBRATE)
         run.service_reason = reason.strip()
         run.previous_run_id = previous.run_id if previous is not None else None
@@ -119,6 +127,23 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         run = _execute(store, station, serial, recipe, run, observer=observer,
                        previous_trims=previous_trims)
         return Calibration(run, previous)
+
+
+def _recipe_of(store: Store, previous: Run) -> Recipe:
+    """The current version of the unit's last recipe; the very text it used if not shipped.
+
+    A unit calibrated with a recipe file that is not (or no longer) among the
+    shipped ones can still be recalibrated in the field exactly as before: the
+    database keeps every recipe text a run used, by hash.
+    """
+    name = previous.recipe.name
+    if name in available_recipes():
+        return load_recipe(name)
+    text = store.recipe_text(previous.recipe.sha256)
+    if text is None:
+        raise InputError(f"recipe {name!r} of run {previous.run_id} is neither shipped nor "
+                         "kept in the database; name one with --recipe")
+    return parse_recipe(text, source=f"{name} {previous.recipe.version} (database copy)")
 
 
 def _new_run(station: Station, serial: Serial, recipe: Recipe, kind: RunKind) -> Run:

@@ -178,6 +178,7 @@ def test_station_errors_are_recorded_with_their_reason_and_touch_no_trim(
     assert code == 3
     assert doc["verdict"] == "error" and reason in doc["reason"]
     assert doc["trims"] is None and doc["after"] is None
+    assert doc["recording"] is not None and Path(doc["recording"]).exists()
     with Store(db) as store:
         (run,) = store.history("SN123")
     assert run.verdict is not None and run.verdict.value == "error"
@@ -260,10 +261,11 @@ def test_recalibrate_shows_the_drift_and_warns_past_the_recipe_limit(
     code, first = _run(["calibrate", "SN123", "--recipe", str(recipe), "--bench", str(plain),
                         "--db", str(db), "--json"], monkeypatch, capsys)
     assert code == 0, first["reason"]
-    code, again = _run(["recalibrate", "SN123", "--reason", "noisy in the field", "--recipe",
-                        str(recipe), "--bench", str(aged), "--db", str(db), "--json"],
-                       monkeypatch, capsys)
+    recipe.unlink()  # field service has only the database's copy of this recipe
+    code, again = _run(["recalibrate", "SN123", "--reason", "noisy in the field",
+                        "--bench", str(aged), "--db", str(db), "--json"], monkeypatch, capsys)
     assert code == 0, again["reason"]
+    assert (again["recipe"], again["recipe_sha256"]) == (first["recipe"], first["recipe_sha256"])
     assert again["kind"] == "recalibrate" and again["service_reason"] == "noisy in the field"
     assert again["previous_trims"] == first["trims"]
     assert again["previous_run_id"] == first["run_id"]
