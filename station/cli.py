@@ -11,11 +11,9 @@ from __future__ import annotations
 import csv
 import json
 import logging
-import math
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict
 from datetime import UTC, datetime, time
 from enum import StrEnum
 from pathlib import Path
@@ -37,15 +35,20 @@ from station.core import Effect, LoadKind
 from station.errors import ExitCode, InputError, StationError
 from station.procedure import Step
 from station.recipes import available_recipes, load_recipe
-from station.run_report import CSV_COLUMNS, run_csv_row, run_dict
-from station.runs import Run, Verdict, utc_iso
+from station.run_report import (
+    CSV_COLUMNS,
+    calibration_dict,
+    run_csv_row,
+    run_dict,
+    stats_dict,
+    verify_dict,
+)
+from station.runs import Run, Verdict
 from station.schedules import Hold, ScheduleName
 from station.serials import parse_serial
 from station.service import (
     Calibration,
-    RecipeStatistics,
     Station,
-    Verification,
     calibrate,
     database_path,
     default_operator,
@@ -405,21 +408,8 @@ def _operator_display(enabled: bool) -> Iterator[_OperatorDisplay]:
         yield _OperatorDisplay(progress, enabled)
 
 
-def _calibration_doc(result: Calibration) -> dict[str, Any]:
-    doc = run_dict(result.run)
-    if result.previous is not None or result.run.kind.value == "recalibrate":
-        previous = result.previous
-        doc["previous_trims"] = (
-            previous.trims_after.as_dict()
-            if previous is not None and previous.trims_after is not None else None
-        )
-        doc["previous_run_id"] = previous.run_id if previous is not None else None
-        doc["drift"] = result.drift.as_dict() if result.drift is not None else None
-    return doc
-
-
 def _finish_run(result: Calibration, as_json: bool) -> int:
-    doc = _calibration_doc(result)
+    doc = calibration_dict(result)
     _emit(doc, as_json, human=run_view(doc))
     verdict = result.run.verdict or Verdict.ERROR
     return int(verdict.exit_code)
@@ -467,29 +457,6 @@ def recalibrate_command(
     return _finish_run(result, as_json)
 
 
-def _verify_doc(result: Verification) -> dict[str, Any]:
-    r = result.record
-    cal = result.calibration_record
-    return {
-        "serial": r.serial,
-        "match": r.match,
-        "drive_trims": r.drive_trims.as_dict(),
-        "recorded_trims": r.recorded_trims.as_dict() if r.recorded_trims is not None else None,
-        "recorded_run_id": r.recorded_run_id,
-        "recorded_verdict": result.recorded_verdict.value if result.recorded_verdict else None,
-        "calibration_record": {
-            "calibrated_at": (
-                utc_iso(datetime.fromtimestamp(cal.calibrated_at, UTC))
-                if cal.calibrated_at else None
-            ),
-            "station_id": cal.station_id,
-            "count": cal.count,
-        },
-        "verified_at": utc_iso(r.verified_at),
-        "station": r.station_id,
-    }
-
-
 @app.command("verify")
 def verify_command(
     serial: Annotated[str, typer.Argument(help="Serial label of the unit, e.g. SN123.")],
@@ -500,7 +467,7 @@ def verify_command(
 ) -> int:
     """Compare the trims stored in the drive with the last ones recorded (exit 0 match, 1 not)."""
     result = verify(_station(db, bench, operator), serial)
-    doc = _verify_doc(result)
+    doc = verify_dict(result)
     _emit(doc, as_json, human=verify_view(doc))
     return int(ExitCode.OK if result.match else ExitCode.FAILED_LIMIT)
 
@@ -594,21 +561,6 @@ def query_command(
     _print_runs(query(database_path(db), run_filter), _output(output, as_json), "runs")
 
 
-def _stats_doc(s: RecipeStatistics) -> dict[str, Any]:
-    return {
-        "recipe": s.recipe.name,
-        "recipe_version": s.recipe.version,
-        "recipe_sha256": s.recipe.sha256,
-        "runs": s.runs,
-        "verdicts": {v.value: n for v, n in s.verdicts.items()},
-        "quantities": {
-            name: {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                   for k, v in asdict(c).items()}
-            for name, c in s.quantities.items()
-        },
-    }
-
-
 @app.command("stats")
 def stats_command(
     since: SinceOption = None,
@@ -620,7 +572,7 @@ def stats_command(
 ) -> None:
     """Per recipe version: mean, standard deviation and Cpk of trims and residual ripple."""
     run_filter = _filter(since, until, recipe, None, station, None, None)
-    docs = [_stats_doc(s) for s in statistics(database_path(db), run_filter)]
+    docs = [stats_dict(s) for s in statistics(database_path(db), run_filter)]
     _emit(docs, as_json, human=stats_view(docs))
 
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable, Sequence
 
-from station.analysis.estimate import FitQuality, TrimEstimate
+from station.analysis.estimate import FitQuality, TrimEstimate, consistent_with_noise
 from station.core import Trims
 from station.recipes import Limits
 from station.runs import LimitCheck, LimitName, Ripple, Verdict
@@ -32,19 +32,25 @@ def fit_qualities(estimate: TrimEstimate) -> list[FitQuality]:
 
 
 def worst_r_squared(estimate: TrimEstimate) -> float | None:
-    """The smallest share of variation explained among fits with points to spare.
+    """The smallest share of variation explained among the fits that the noise cannot excuse.
 
-    R², not reduced chi²: the harmonics are measured so precisely that a
-    model right to a tenth of a percent still fails chi² by far, and chi²
-    already widens the uncertainties (Birge ratio) that their own limits
-    judge. R² asks what a motion engineer asks of a fit: does it describe
-    the unit at all. A fit with no spare points explains everything
-    trivially and decides nothing.
+    A fit fails on quality only when both things are true: its residuals are
+    larger than the noise explains (the estimators' own chi² test), and it
+    explains too small a share of the variation (R²). Either alone says
+    nothing: the harmonics are measured so precisely that a model right to a
+    tenth of a percent fails chi² by far, while points close to the null
+    vary so little against the noise that even a perfect model has a low R².
+    Fits with no spare points decide nothing; None when no fit is left.
     """
-    values = [q.r_squared for q in fit_qualities(estimate) if q.dof > 0]
-    if any(not math.isfinite(v) for v in values):
+    fits = [q for q in fit_qualities(estimate) if q.dof > 0]
+    if not fits:
+        return None
+    beyond_noise = [q for q in fits if not consistent_with_noise(q)]
+    if any(not math.isfinite(q.r_squared) for q in beyond_noise):
         return math.nan
-    return min(values) if values else None
+    if not beyond_noise:
+        return math.inf  # every residual within the noise: nothing left unexplained
+    return min(q.r_squared for q in beyond_noise)
 
 
 def _worst(*values: float) -> float:
@@ -76,6 +82,9 @@ def estimate_checks(
     if r2 is None:
         checks.append(LimitCheck(LimitName.FIT_R2, None, limits.min_fit_r_squared, None, "", None,
                                  "no fit had points to spare: nothing to judge it by"))
+    elif r2 == math.inf:
+        checks.append(LimitCheck(LimitName.FIT_R2, None, limits.min_fit_r_squared, None, "", True,
+                                 "every fit within the noise"))
     else:
         checks.append(_within(LimitName.FIT_R2, r2, limits.min_fit_r_squared, None, ""))
     return tuple(checks)

@@ -9,10 +9,14 @@ drive holds after the run (null when the run stored none).
 
 from __future__ import annotations
 
+import math
+from dataclasses import asdict
+from datetime import UTC, datetime
 from typing import Any
 
 from station.core import Trims
-from station.runs import Run, utc_iso
+from station.runs import Run, RunKind, utc_iso
+from station.service import Calibration, RecipeStatistics, Verification
 
 
 def _trims(t: Trims | None) -> dict[str, float] | None:
@@ -80,3 +84,57 @@ def run_csv_row(run: Run) -> list[str]:
         "failed_limits": ";".join(c["name"] for c in doc["failed_limits"]),
     }
     return ["" if flat[k] is None else str(flat[k]) for k in CSV_COLUMNS]
+
+
+def calibration_dict(result: Calibration) -> dict[str, Any]:
+    """``calibrate``/``recalibrate``: the run, and for field service what it had before."""
+    doc = run_dict(result.run)
+    if result.previous is not None or result.run.kind is RunKind.RECALIBRATE:
+        previous = result.previous
+        doc["previous_trims"] = (
+            previous.trims_after.as_dict()
+            if previous is not None and previous.trims_after is not None else None
+        )
+        doc["previous_run_id"] = previous.run_id if previous is not None else None
+        doc["drift"] = result.drift.as_dict() if result.drift is not None else None
+    return doc
+
+
+def verify_dict(result: Verification) -> dict[str, Any]:
+    """``verify``: the drive's trims against the ones the station last stored."""
+    r = result.record
+    cal = result.calibration_record
+    return {
+        "serial": r.serial,
+        "match": r.match,
+        "drive_trims": r.drive_trims.as_dict(),
+        "recorded_trims": r.recorded_trims.as_dict() if r.recorded_trims is not None else None,
+        "recorded_run_id": r.recorded_run_id,
+        "recorded_verdict": result.recorded_verdict.value if result.recorded_verdict else None,
+        "calibration_record": {
+            "calibrated_at": (
+                utc_iso(datetime.fromtimestamp(cal.calibrated_at, UTC))
+                if cal.calibrated_at else None
+            ),
+            "station_id": cal.station_id,
+            "count": cal.count,
+        },
+        "verified_at": utc_iso(r.verified_at),
+        "station": r.station_id,
+    }
+
+
+def stats_dict(s: RecipeStatistics) -> dict[str, Any]:
+    """``stats``: one recipe version's verdicts and capability; NaN becomes null."""
+    return {
+        "recipe": s.recipe.name,
+        "recipe_version": s.recipe.version,
+        "recipe_sha256": s.recipe.sha256,
+        "runs": s.runs,
+        "verdicts": {v.value: n for v, n in s.verdicts.items()},
+        "quantities": {
+            name: {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                   for k, v in asdict(c).items()}
+            for name, c in s.quantities.items()
+        },
+    }

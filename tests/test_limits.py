@@ -46,14 +46,18 @@ LIMITS = default_limits()
 GOOD_SIGMA = TrimSigma(1.0, 1.5, 12.0, 12.0)
 
 
-def quality(r_squared: float, dof: int, chi2: float = 1.0) -> FitQuality:
+BEYOND_NOISE = 50.0
+"""A reduced chi² no noise explains: fit quality is then judged by R² (see worst_r_squared)."""
+
+
+def quality(r_squared: float, dof: int, chi2: float = BEYOND_NOISE) -> FitQuality:
     return FitQuality(
         r_squared=r_squared, chi2_reduced=chi2, dof=dof, points_used=dof + 2,
         points_available=dof + 2, residuals=(),
     )
 
 
-def affine(order: int, r_squared: float, dof: int, chi2: float = 1.0) -> AffineFit:
+def affine(order: int, r_squared: float, dof: int, chi2: float = BEYOND_NOISE) -> AffineFit:
     return AffineFit(
         order=order,
         terms=(Term.OFFSET_A, Term.OFFSET_B) if order == 1 else (Term.GAIN_SPLIT,),
@@ -160,6 +164,26 @@ def test_sigma_limits_fail_on_the_worse_of_the_two_trims() -> None:
     others = [c for n, c in checks.items()
               if n not in (LimitName.OFFSET_SIGMA, LimitName.GAIN_SIGMA)]
     assert all(c.passed is True for c in others)
+
+
+def test_fits_within_the_noise_pass_whatever_their_r_squared() -> None:
+    """Points close to the null vary little against the noise: a low R² means nothing there."""
+    estimate = TrimEstimate(
+        method=Method.COHERENT, trims=Trims(), sigma=GOOD_SIGMA,
+        affine=(affine(1, 0.5, 10, chi2=1.1), affine(2, 0.97, 6, chi2=0.9)),
+    )
+    check = by_name(estimate_checks(LIMITS, estimate, STORED))[LimitName.FIT_R2]
+    assert check.passed is True and check.value is None
+    assert check.note == "every fit within the noise"
+
+
+def test_only_fits_beyond_the_noise_are_judged_by_r_squared() -> None:
+    estimate = TrimEstimate(
+        method=Method.COHERENT, trims=Trims(), sigma=GOOD_SIGMA,
+        affine=(affine(1, 0.5, 10, chi2=1.0), affine(2, 0.98, 6)),
+    )
+    check = by_name(estimate_checks(LIMITS, estimate, STORED))[LimitName.FIT_R2]
+    assert (check.value, check.passed) == (0.98, False)
 
 
 def test_fit_limit_judges_the_worst_fit_with_points_to_spare() -> None:

@@ -201,7 +201,8 @@ def _quality(
     )
 
 
-def _consistent(q: FitQuality) -> bool:
+def consistent_with_noise(q: FitQuality) -> bool:
+    """Residuals no larger than the noise explains (chi² at least ``CONSISTENT_P`` probable)."""
     if q.dof <= 0:
         return True
     return float(stats.chi2.sf(q.chi2_reduced * q.dof, q.dof)) >= CONSISTENT_P
@@ -276,7 +277,7 @@ def _nearest_windows(
     """Largest window of points nearest the vertex that a parabola explains."""
     order = np.arange(x.size)
     current = fit(order)
-    chosen, accepted = order, _consistent(current.quality)
+    chosen, accepted = order, consistent_with_noise(current.quality)
     for _ in range(_MAX_REFITS):
         if current.coef[2] <= 0:
             break
@@ -285,7 +286,7 @@ def _nearest_windows(
         for n in range(x.size, minimum - 1, -1):
             idx = np.sort(by_distance[:n])
             candidate = fit(idx)
-            if candidate.coef[2] > 0 and _consistent(candidate.quality):
+            if candidate.coef[2] > 0 and consistent_with_noise(candidate.quality):
                 pick = (idx, candidate, True)
                 break
         if pick is None:
@@ -585,7 +586,7 @@ def coherent_estimate(points: Sequence[TrimPoint]) -> TrimEstimate:
         if models is None:
             continue
         fallback = (subset, models)
-        if all(_consistent(m.quality) for m in models):
+        if all(consistent_with_noise(m.quality) for m in models):
             chosen = fallback
             break
     if fallback is None:
