@@ -66,8 +66,6 @@ CREATE INDEX runs_by_serial ON runs (serial, run_id);
 CREATE INDEX runs_by_start ON runs (started_at);
 CREATE INDEX runs_by_recipe ON runs (recipe_name, started_at);
 CREATE INDEX runs_by_station ON runs (station_id, started_at);
--- Runs left open by a crash are few; a partial index finds them without a scan.
-CREATE INDEX runs_open ON runs (run_id) WHERE verdict IS NULL;
 
 -- passed NULL: the limit did not apply. position keeps the order the recipe gave.
 CREATE TABLE limit_checks (

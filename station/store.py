@@ -346,18 +346,6 @@ class Store:
         )
         return runs[0] if runs else None
 
-    def last_run(self, serial: str) -> Run | None:
-        runs = self._runs(
-            f"find the last run of {serial}",
-            "WHERE serial = ? ORDER BY run_id DESC LIMIT 1",
-            (serial,),
-        )
-        return runs[0] if runs else None
-
-    def open_runs(self) -> list[Run]:
-        """Runs that began and never finished: a station crash to report."""
-        return self._runs("find open runs", "WHERE verdict IS NULL ORDER BY run_id", ())
-
     def recipe_text(self, sha256: str) -> str | None:
         with self._transaction(f"read recipe {sha256}") as conn:
             row = conn.execute("SELECT text FROM recipes WHERE sha256 = ?", (sha256,)).fetchone()
