@@ -109,8 +109,7 @@ def _emit(doc: Any, as_json: bool, human: Any = None) -> None:
         stdout.print(human if human is not None else doc)
 
 
-@contextmanager
-def _progress(description: str, enabled: bool = True) -> Iterator[Any]:
+def _progress_display(enabled: bool) -> Progress:
     """Rich progress on stderr, so stdout stays clean for data."""
     columns = (
         TextColumn("[bold]{task.description}"),
@@ -118,7 +117,12 @@ def _progress(description: str, enabled: bool = True) -> Iterator[Any]:
         TextColumn("{task.fields[phase]}"),
         TimeElapsedColumn(),
     )
-    with Progress(*columns, console=stderr, transient=True, disable=not enabled) as progress:
+    return Progress(*columns, console=stderr, transient=True, disable=not enabled)
+
+
+@contextmanager
+def _progress(description: str, enabled: bool = True) -> Iterator[Any]:
+    with _progress_display(enabled) as progress:
         task = progress.add_task(description, total=None, phase="")
 
         def update(done: int, total: int, hold: Hold) -> None:
@@ -402,9 +406,7 @@ class _OperatorDisplay:
 
 @contextmanager
 def _operator_display(enabled: bool) -> Iterator[_OperatorDisplay]:
-    columns = (TextColumn("[bold]{task.description}"), BarColumn(),
-               TextColumn("{task.fields[phase]}"), TimeElapsedColumn())
-    with Progress(*columns, console=stderr, transient=True, disable=not enabled) as progress:
+    with _progress_display(enabled) as progress:
         yield _OperatorDisplay(progress, enabled)
 
 
@@ -480,7 +482,7 @@ def _print_runs(runs: Sequence[Run], output: OutputFormat, title: str, *,
     elif output is OutputFormat.CSV:
         writer = csv.writer(sys.stdout, lineterminator="\n")
         writer.writerow(CSV_COLUMNS)
-        writer.writerows(run_csv_row(r) for r in runs)
+        writer.writerows(run_csv_row(doc) for doc in docs)
     else:
         stdout.print(runs_table(docs, title, one_unit=one_unit))
 

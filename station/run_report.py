@@ -69,8 +69,8 @@ CSV_COLUMNS: tuple[str, ...] = (
 """One flat row per run, for spreadsheets: trims are those stored in the drive."""
 
 
-def run_csv_row(run: Run) -> list[str]:
-    doc = run_dict(run)
+def run_csv_row(doc: dict[str, Any]) -> list[str]:
+    """The CSV row of a run's document (``run_dict``): CSV and JSON cannot disagree."""
     trims = doc["trims"] or {}
     before = doc["before"] or {}
     after = doc["after"] or {}

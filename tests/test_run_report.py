@@ -141,7 +141,7 @@ def test_started_at_is_given_in_utc_whatever_the_zone_it_was_taken_in() -> None:
 
 
 def row_dict(run: Run) -> dict[str, str]:
-    row = run_csv_row(run)
+    row = run_csv_row(run_dict(run))
     assert len(row) == len(CSV_COLUMNS)
     return dict(zip(CSV_COLUMNS, row, strict=True))
 
@@ -198,7 +198,7 @@ def test_csv_rows_survive_a_round_trip_through_the_csv_module() -> None:
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(CSV_COLUMNS)
-    writer.writerows(run_csv_row(r) for r in runs)
+    writer.writerows(run_csv_row(run_dict(r)) for r in runs)
     rows = list(csv.DictReader(io.StringIO(buffer.getvalue())))
     assert [r["serial"] for r in rows] == ["SN123", "SN123"]
     assert rows[1]["reason"] == 'bus: "can0", down'
