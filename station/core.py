@@ -16,6 +16,13 @@ SATURATED_COUNTS = 32767
 """A saturated sample reads ±32767 (ICD.md §3), never -32768."""
 SENSOR_COUNTER_MODULUS = 1 << 16
 """The sensor's sample counter (ICD.md §3, object 0x2010) is a U16 that wraps."""
+GAIN_LIMITS = (5000, 15000)
+"""The drive accepts phase gains in 5000..15000 (ICD.md §2, 0x2100:03/04)."""
+
+
+def offset_limit_mA(rated_current_mA: int) -> int:
+    """The drive accepts offsets within ±rated/2 (ICD.md §2, 0x2100:01/02), in whole mA."""
+    return rated_current_mA // 2
 
 
 class Effect(StrEnum):

@@ -16,16 +16,8 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-from station.core import GAIN_UNITY, Trims
+from station.core import GAIN_LIMITS, GAIN_UNITY, Trims, offset_limit_mA
 from station.schedules import Hold, Phase, linspace_int
-
-GAIN_LIMITS = (5000, 15000)
-"""The drive's accepted gain range (ICD.md §2, 0x2100:03/04)."""
-
-
-def offset_limit_mA(rated_current_mA: int) -> int:
-    """The drive accepts offsets within ±rated/2 (ICD.md §2)."""
-    return rated_current_mA // 2
 
 
 def within_drive_range(trims: Trims, rated_current_mA: int) -> Trims:

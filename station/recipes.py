@@ -22,7 +22,13 @@ from importlib.resources import files
 from pathlib import Path
 from typing import Final
 
-from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY
+from station.core import (
+    GAIN_LIMITS,
+    GAIN_UNITY,
+    SENSOR_RANGES_G,
+    STANDARD_GRAVITY,
+    offset_limit_mA,
+)
 from station.errors import InputError
 from station.tomltable import TomlTable, toml_error
 
@@ -30,8 +36,6 @@ RECIPE_FORMAT: Final = "station-recipe/1"
 DEFAULT_RECIPE: Final = "default"
 RECIPE_SUFFIX: Final = ".toml"
 
-# The drive accepts gains in 5000..15000 (ICD.md, 0x2100:03/04).
-GAIN_LIMITS: Final = (5000, 15000)
 # Sum of the two phase gains during the paper's gain sweep: the mean torque stays
 # constant (the paper's step 3, I21 = 2I - I11).
 GAIN_SUM: Final = 2 * GAIN_UNITY
@@ -218,8 +222,7 @@ def _neg(value: int | None) -> int | None:
 
 
 def _read_paper_sweep(t: TomlTable, rated: int | None) -> PaperSweep:
-    # The drive's offset trim range is ±rated/2 (ICD.md, 0x2100:01/02).
-    half = rated // 2 if rated is not None else None
+    half = offset_limit_mA(rated) if rated is not None else None
     offset_note = "the drive's offset range: half of product.rated_current_mA"
     offset_note = offset_note if half is not None else ""
     # 20000 - g lies in 5000..15000 exactly when g does, so one range check covers
@@ -243,7 +246,7 @@ def _read_coherent_sweep(t: TomlTable, rated: int | None) -> CoherentSweep:
     sweep = CoherentSweep(
         offset_steps_mA=t.int_array("offset_steps_mA"), gain_steps=t.int_array("gain_steps")
     )
-    half = rated // 2 if rated is not None else None
+    half = offset_limit_mA(rated) if rated is not None else None
     for key, steps, high, note in (
         (
             "offset_steps_mA",

@@ -6,15 +6,13 @@ from dataclasses import replace
 
 import pytest
 
-from station.core import NOMINAL_TRIMS, Trims
+from station.core import GAIN_LIMITS, NOMINAL_TRIMS, Trims, offset_limit_mA
 from station.designs import (
-    GAIN_LIMITS,
     gain_sweep,
     hold_cycles,
     holds_for,
     offset_a_sweep,
     offset_b_sweep,
-    offset_limit_mA,
     star,
     with_split,
     within_drive_range,
