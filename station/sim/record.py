@@ -13,30 +13,20 @@ from __future__ import annotations
 import hashlib
 import os
 import time
-import uuid
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Final
 
-from drivers.canbus import (
-    VIRTUAL_INTERFACE,
-    BusConfig,
-    SteppedSync,
-    bench_tpdo_cob_ids,
-    open_network,
-)
-from drivers.canopen_drive import CanopenDrive
-from drivers.canopen_sensor import CanopenSensor
 from station import __version__
-from station.core import SENSOR_RANGES_G, Axis, Effect, LoadKind, Trims
-from station.errors import DeviceError, DeviceStateError, IdentityMismatch, InputError
+from station.benches import SIM_SPEC, BenchSession, SimSettings, open_bench
+from station.core import SENSOR_RANGES_G, Effect, LoadKind, Trims
+from station.errors import DeviceStateError, IdentityMismatch, InputError
 from station.paths import sim_state_dir, truth_dir
 from station.physics.optimum import optimal_trims
 from station.physics.params import UnitParams, derive_unit
 from station.recording import (
     RecordingMetadata,
     RecordingWriter,
-    SimulatedClock,
     log_format_for,
     metadata_path_for,
     write_json_atomically,
@@ -49,7 +39,6 @@ from station.schedules import (
     named_schedule,
 )
 from station.serials import Serial
-from station.sim.bench import SimBench, SimBenchConfig
 from station.sim.eeprom import Eeprom
 
 TRUTH_FORMAT: Final = "hsm-truth/1"
@@ -137,21 +126,22 @@ def _metadata(
     microsteps: int,
     rated_mA: int,
     lsb: float,
-    config: SimBenchConfig,
+    session: BenchSession,
     schedule: str,
 ) -> RecordingMetadata:
+    spec, fixture = session.spec, session.fixture
     return RecordingMetadata(
         serial=request.serial.label,
-        drive_node=config.drive_node,
-        sensor_node=config.sensor_node,
-        sync_period_s=config.sync_period_s,
+        drive_node=spec.drive_node,
+        sensor_node=spec.sensor_node,
+        sync_period_s=spec.sync_period_s,
         microsteps_per_fullstep=microsteps,
         rotor_teeth=unit.rotor_teeth,
         rated_current_mA=rated_mA,
         sensor_lsb_mps2=lsb,
-        tangential_axis=Axis(unit.sensor.tangential_axis),
-        sensor_radius_m=unit.sensor.radius_m,
-        gear_ratio=unit.gear_ratio,
+        tangential_axis=fixture.tangential_axis,
+        sensor_radius_m=fixture.radius_m,
+        gear_ratio=fixture.gear_ratio,
         extra={
             "schedule": schedule,
             "bench": "sim",
@@ -187,79 +177,59 @@ def record_schedule(
 def _record(
     request: SimRecordRequest, schedule: Schedule, on_progress: ProgressCallback | None
 ) -> SimRecordResult:
-    config = SimBenchConfig(
-        serial=request.serial.label,
+    spec = replace(
+        SIM_SPEC,
+        sync_period_s=SYNC_PERIOD_S,
+        sim=SimSettings(
+            load=request.load,
+            effects=request.effects,
+            noise_ug=request.noise_density_ug,
+            seed=request.seed,
+        ),
+    )
+    # The same unit the simulated bench mounts (derived from the serial): its truth.
+    unit = derive_unit(
+        request.serial.label,
         load=request.load,
         effects=request.effects,
-        seed=request.seed,
-        # A private channel per run: two recordings in one process never hear each other.
-        channel=f"station-sim-{uuid.uuid4().hex}",
-        sync_period_s=SYNC_PERIOD_S,
         noise_density_ug=request.noise_density_ug,
     )
-    # The recorder listens on the station's own notifier, so it must see our SYNCs too.
-    bus = BusConfig(
-        interface=VIRTUAL_INTERFACE,
-        channel=config.channel,
-        options={"receive_own_messages": True},
-    )
-    with SimBench(config) as bench, open_network(bus) as network:
-        unit = bench.unit
-        with (
-            CanopenDrive(network, config.drive_node) as drive,
-            CanopenSensor(network, config.sensor_node) as sensor,
-        ):
-            identity = drive.identity()
-            if identity.serial_number != request.serial.number:
-                raise IdentityMismatch(
-                    drive.name,
-                    f"reports serial {identity.serial_number}, expected {request.serial.number}",
-                )
-            microsteps = drive.microsteps_per_fullstep()
-            if microsteps != schedule.microsteps:
-                # Velocities are in microsteps/s: a mismatch would run another speed.
-                raise DeviceStateError(
-                    drive.name,
-                    f"runs {microsteps} microsteps per full step, the schedule was "
-                    f"planned for {schedule.microsteps}",
-                )
-            sensor.set_range_g(schedule.sensor_range_g)
-            metadata = _metadata(
-                unit,
-                request,
-                microsteps=microsteps,
-                rated_mA=drive.rated_current_mA(),
-                lsb=sensor.lsb_mps2(),
-                config=config,
-                schedule=schedule.name,
+    with open_bench(spec, request.serial) as session:
+        drive, sensor = session.drive, session.sensor
+        identity = drive.identity()
+        if identity.serial_number != request.serial.number:
+            raise IdentityMismatch(
+                drive.name,
+                f"reports serial {identity.serial_number}, expected {request.serial.number}",
             )
-            cob_ids = bench_tpdo_cob_ids(
-                config.drive_node,
-                config.sensor_node,
-                drive_name=drive.name,
-                sensor_name=sensor.name,
+        microsteps = drive.microsteps_per_fullstep()
+        if microsteps != schedule.microsteps:
+            # Velocities are in microsteps/s: a mismatch would run another speed.
+            raise DeviceStateError(
+                drive.name,
+                f"runs {microsteps} microsteps per full step, the schedule was "
+                f"planned for {schedule.microsteps}",
             )
-            notifier = network.notifier
-            if notifier is None:
-                raise DeviceError(bus.describe(), "the CAN network is not connected")
-            with (
-                SteppedSync(
-                    network, period_s=config.sync_period_s, expected_cob_ids=cob_ids
-                ) as clock,
-                RecordingWriter(
-                    request.out,
-                    metadata,
-                    clock=SimulatedClock(config.sync_period_s),
-                    loss_probability=request.loss,
-                    seed=request.seed,
-                ) as recorder,
-            ):
-                notifier.add_listener(recorder)
-                try:
-                    run_schedule(schedule, drive, clock, on_progress=on_progress)
-                finally:
-                    notifier.remove_listener(recorder)
-                recorder.commit()
+        sensor.set_range_g(schedule.sensor_range_g)
+        metadata = _metadata(
+            unit,
+            request,
+            microsteps=microsteps,
+            rated_mA=drive.rated_current_mA(),
+            lsb=sensor.lsb_mps2(),
+            session=session,
+            schedule=schedule.name,
+        )
+        with RecordingWriter(
+            request.out,
+            metadata,
+            clock=session.recording_clock(),
+            loss_probability=request.loss,
+            seed=request.seed,
+        ) as recorder:
+            with session.listening(recorder):
+                run_schedule(schedule, drive, session.clock, on_progress=on_progress)
+            recorder.commit()
     # Truth is written only for a recording that exists, and never beside it.
     truth = _truth(unit, request, schedule.name, schedule.cycles)
     truth_path = request.truth_path
