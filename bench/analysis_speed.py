@@ -33,6 +33,7 @@ from bench.tiling import tile_recording
 from station.analysis.pipeline import Analysis, analyze
 from station.analysis.reader import read_recording
 from station.core import LoadKind
+from station.paths import HOME_ENV
 from station.recording import LogFormat
 from station.schedules import Schedule, ScheduleName, SweepPlan, calibration_schedule
 from station.serials import parse_serial
@@ -101,7 +102,7 @@ class MinuteRecording:
         out = folder / f"minute{log_format.value}"
         if log_format is LogFormat.BLF:
             env = dict(os.environ)
-            env["STATION_HOME"] = str(self._directory / "home")
+            env[HOME_ENV] = str(self._directory / "home")
             run_child(["bench.analysis_speed", Command.RECORD, str(out)], env)
         else:
             # The same frames through python-can's writer for that format,

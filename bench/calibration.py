@@ -25,6 +25,7 @@ from pathlib import Path
 
 from bench.record import BenchRecord, Goal
 from station.benches import SIM_SPEC
+from station.paths import HOME_ENV
 from station.physics.optimum import optimal_trims
 from station.physics.params import derive_unit
 from station.service import Station, calibrate
@@ -50,7 +51,7 @@ class Outcome:
 def _calibrate_one(serial: str, recipe: str) -> Outcome:
     """One unit, one recipe, from a fresh station home (fresh EEPROM, fresh database)."""
     with tempfile.TemporaryDirectory(prefix="station-bench-cal-") as home:
-        os.environ["STATION_HOME"] = home
+        os.environ[HOME_ENV] = home
         station = Station(Path(home) / "station.db", SIM_SPEC, "bench")
         run = calibrate(station, serial, recipe).run
     truth = optimal_trims(derive_unit(serial))

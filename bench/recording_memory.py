@@ -16,6 +16,7 @@ from pathlib import Path
 from bench.analysis_memory import peak_rss_kb
 from bench.record import BenchRecord, Goal
 from station.core import LoadKind
+from station.paths import HOME_ENV
 from station.schedules import ScheduleName, SweepPlan, calibration_schedule
 from station.serials import parse_serial
 from station.sim.record import SimRecordRequest, record_schedule
@@ -74,7 +75,7 @@ def measure() -> list[BenchRecord]:
 
 def _env(tmp: str) -> dict[str, str]:
     env = dict(os.environ)
-    env["STATION_HOME"] = str(Path(tmp) / "home")
+    env[HOME_ENV] = str(Path(tmp) / "home")
     return env
 
 

@@ -10,9 +10,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+HOME_ENV = "STATION_HOME"
+"""The environment variable naming the station's home."""
+
 
 def station_home() -> Path:
-    return Path(os.environ.get("STATION_HOME", Path.home() / ".station")).expanduser()
+    return Path(os.environ.get(HOME_ENV, Path.home() / ".station")).expanduser()
 
 
 def sim_state_dir() -> Path:
