@@ -18,6 +18,11 @@ def station_home() -> Path:
     return Path(os.environ.get(HOME_ENV, Path.home() / ".station")).expanduser()
 
 
+def default_database() -> Path:
+    """The results database when neither ``--db`` nor ``STATION_DB`` names one."""
+    return station_home() / "station.db"
+
+
 def sim_state_dir() -> Path:
     """EEPROM images of simulated units, one file per serial."""
     return station_home() / "sim" / "eeprom"

@@ -24,7 +24,7 @@ from station.benches import BenchSpec, open_bench
 from station.core import Trims
 from station.errors import InputError, StationError
 from station.limits import drift, drift_warnings
-from station.paths import station_home
+from station.paths import default_database
 from station.procedure import CalibrationRequest, Observer, calibrate_unit, check_identity
 from station.qa import Capability, capability
 from station.recipes import (
@@ -52,7 +52,7 @@ def database_path(explicit: Path | None = None) -> Path:
     if explicit is not None:
         return explicit.expanduser()
     from_env = os.environ.get(DB_ENV)
-    return Path(from_env).expanduser() if from_env else station_home() / "station.db"
+    return Path(from_env).expanduser() if from_env else default_database()
 
 
 def recordings_dir(db_path: Path) -> Path:
