@@ -60,7 +60,7 @@ from station.service import (
 )
 from station.sim.record import SimRecordRequest, describe_unit, record_simulation
 from station.store import RunFilter
-from station.views import run_view, runs_table, stats_view, verify_view
+from station.views import run_view, runs_table, stats_view, trims_text, verify_view
 
 log = logging.getLogger("station")
 
@@ -244,15 +244,6 @@ def sim_unit(
     _emit(doc, as_json, human=_unit_table(doc))
 
 
-def _trims_text(trims: dict[str, float] | None) -> str:
-    if trims is None:
-        return "none stored"
-    return (
-        f"offset A {trims['offset_a_mA']:+.1f} mA, offset B {trims['offset_b_mA']:+.1f} mA, "
-        f"gain A {trims['gain_a']:.0f}, gain B {trims['gain_b']:.0f}"
-    )
-
-
 def _unit_table(doc: dict[str, Any]) -> Table:
     """What a technician asks of a simulated unit; the whole truth is in ``--json``."""
     point = doc["operating_point"]
@@ -262,7 +253,7 @@ def _unit_table(doc: dict[str, Any]) -> Table:
     table.add_column("value")
     table.add_row(
         f"optimal trims at {point['amplitude_mA']:.0f} mA, {point['electrical_hz']:g} Hz",
-        _trims_text(doc["optimal_trims"]),
+        trims_text(doc["optimal_trims"], decimals=1),
     )
     table.add_row(
         "amplifier",
@@ -271,7 +262,7 @@ def _unit_table(doc: dict[str, Any]) -> Table:
     )
     effects = [e["id"] for e in doc["effects"]]
     table.add_row("concealed effects", ", ".join(effects) if effects else "none")
-    table.add_row("stored in its EEPROM", _trims_text(doc["stored_trims"]))
+    table.add_row("stored in its EEPROM", trims_text(doc["stored_trims"], absent="none stored"))
     return table
 
 

@@ -22,11 +22,13 @@ _VERDICT_STYLE = {"pass": "bold white on green", "fail": "bold white on red",
                   "error": "bold white on dark_orange3", "aborted": "bold white on grey30"}
 
 
-def trims_text(trims: dict[str, float] | None) -> str:
+def trims_text(trims: dict[str, float] | None, *, decimals: int = 0, absent: str = "—") -> str:
+    """Trims for people; stored trims are whole units, estimates and optima are not."""
     if trims is None:
-        return "—"
-    return (f"A {trims['offset_a_mA']:+.0f} mA, B {trims['offset_b_mA']:+.0f} mA, "
-            f"gains {trims['gain_a']:.0f}/{trims['gain_b']:.0f}")
+        return absent
+    d = decimals
+    return (f"A {trims['offset_a_mA']:+.{d}f} mA, B {trims['offset_b_mA']:+.{d}f} mA, "
+            f"gains {trims['gain_a']:.{d}f}/{trims['gain_b']:.{d}f}")
 
 
 def _ripple_text(ripple: dict[str, float] | None) -> str:
