@@ -31,6 +31,7 @@ from station.analysis.pipeline import AnalysisOptions, MethodChoice, analyze
 from station.analysis.reader import read_recording
 from station.analysis.report import analysis_dict
 from station.benches import load_bench
+from station.characterize import characterize, diagnose_recording
 from station.core import Effect, LoadKind
 from station.errors import ExitCode, InputError, StationError
 from station.procedure import Step
@@ -60,7 +61,14 @@ from station.service import (
 )
 from station.sim.record import SimRecordRequest, describe_unit, record_simulation
 from station.store import RunFilter
-from station.views import run_view, runs_table, stats_view, trims_text, verify_view
+from station.views import (
+    diagnosis_view,
+    run_view,
+    runs_table,
+    stats_view,
+    trims_text,
+    verify_view,
+)
 
 log = logging.getLogger("station")
 
@@ -340,6 +348,65 @@ def _analysis_tables(doc: dict[str, Any]) -> Group:
         )
     )
     return Group(head, points, *notes)
+
+
+@app.command("diagnose")
+def diagnose_command(
+    recording: Annotated[
+        Path, typer.Argument(help="CAN log of a run (ICD.md §5), its .json metadata beside it.")
+    ],
+    report: Annotated[
+        Path | None,
+        typer.Option("--report", help="HTML report (default: beside the recording)."),
+    ] = None,
+    no_report: Annotated[bool, typer.Option("--no-report", help="Write no HTML report.")] = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Compare the nominal model with a recording: locate, name and model what is missing.
+
+    Exit 0 whether or not a mismatch is found (it is a finding, not a failure);
+    2 when the recording cannot be read or holds too few conditions.
+    """
+    with _step_display(f"diagnosing {recording.name}", enabled=not as_json) as step:
+        result = diagnose_recording(recording, report=report, write_report=not no_report,
+                                    progress=step)
+    doc = result.as_dict()
+    _emit(doc, as_json, human=diagnosis_view(doc))
+
+
+@app.command("characterize")
+def characterize_command(
+    serial: Annotated[str, typer.Argument(help="Serial label of the unit on the fixture.")],
+    db: DbOption = None,
+    bench: BenchOption = None,
+    operator: OperatorOption = None,
+    recipe: RecipeOption = None,
+    no_report: Annotated[bool, typer.Option("--no-report", help="Write no HTML report.")] = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Run the characterization schedule (speeds both ways, three currents, small trim
+    steps) around the unit's own trims, record it beside the database, and diagnose it."""
+    station = _station(db, bench, operator)
+    with _progress(f"characterizing {serial}", enabled=not as_json) as update:
+        def on_step(text: str) -> None:
+            if not as_json:
+                stderr.print(f"[bold]characterize[/] {text}", highlight=False)
+
+        result = characterize(station, serial, recipe_name=recipe, on_step=on_step,
+                              on_progress=update, write_report=not no_report)
+    doc = result.as_dict()
+    _emit(doc, as_json, human=diagnosis_view(doc))
+
+
+@contextmanager
+def _step_display(description: str, enabled: bool) -> Iterator[Any]:
+    with _progress_display(enabled) as progress:
+        task = progress.add_task(description, total=None, phase="")
+
+        def step(text: str) -> None:
+            progress.update(task, phase=text)
+
+        yield step
 
 
 DbOption = Annotated[

@@ -161,37 +161,51 @@ class CharacterizationPlan:
     gain_step: int = 400
     settle_s: float = 0.8
     step_s: float = 0.5
+    min_periods: int = 10
+    """Every hold lasts at least this many electrical periods: the segmenter needs six
+    to judge the rotor settled, and a phasor a few more after that."""
     standstill_s: float = 0.3
-    sensor_range_g: int = 4
+    # Untrimmed units near the rotor's resonance swing to 30-40 m/s² at some orders;
+    # at 8 g the LSB (2.4 mm/s²) is still far below the sensor's own noise.
+    sensor_range_g: int = 8
 
 
 def characterization_schedule(
-    plan: CharacterizationPlan, *, microsteps: int = 256, sync_period_s: float = 0.001
+    plan: CharacterizationPlan,
+    *,
+    microsteps: int = 256,
+    sync_period_s: float = 0.001,
+    center: Trims = NOMINAL_TRIMS,
 ) -> Schedule:
+    """Both directions, every speed and current, small trim steps around ``center``.
+
+    A station characterizes a unit around the trims it already has (near its
+    optimum once calibrated), so the rotor swings little and the effects are
+    not buried under the offsets' own ripple; the run ends on ``center`` again.
+    """
     still = cycles_for(plan.standstill_s, 0.0, sync_period_s)
     top = max(plan.amplitudes_mA)
-    holds: list[Hold] = [Hold(Phase.STANDSTILL, 0, top, NOMINAL_TRIMS, still)]
+    c = center
+    holds: list[Hold] = [Hold(Phase.STANDSTILL, 0, top, c, still)]
     for direction in (1, -1):
         for hz in plan.electrical_hz:
             v = direction * velocity_for(hz, microsteps)
-            settle = cycles_for(plan.settle_s, hz, sync_period_s)
-            step = cycles_for(plan.step_s, hz, sync_period_s)
+            shortest = plan.min_periods / hz
+            settle = cycles_for(max(plan.settle_s, shortest), hz, sync_period_s)
+            step = cycles_for(max(plan.step_s, shortest), hz, sync_period_s)
             for amp in plan.amplitudes_mA:
                 steps = (
-                    (Phase.STEP_OFFSET_A, replace(NOMINAL_TRIMS, offset_a_mA=plan.offset_step_mA)),
-                    (Phase.STEP_OFFSET_B, replace(NOMINAL_TRIMS, offset_b_mA=plan.offset_step_mA)),
-                    (
-                        Phase.STEP_GAIN,
-                        replace(
-                            NOMINAL_TRIMS,
-                            gain_a=GAIN_UNITY + plan.gain_step,
-                            gain_b=GAIN_UNITY - plan.gain_step,
-                        ),
-                    ),
+                    (Phase.STEP_OFFSET_A,
+                     replace(c, offset_a_mA=c.offset_a_mA + plan.offset_step_mA)),
+                    (Phase.STEP_OFFSET_B,
+                     replace(c, offset_b_mA=c.offset_b_mA + plan.offset_step_mA)),
+                    (Phase.STEP_GAIN,
+                     replace(c, gain_a=c.gain_a + plan.gain_step,
+                             gain_b=c.gain_b - plan.gain_step)),
                 )
-                holds.append(Hold(Phase.CONDITION, v, amp, NOMINAL_TRIMS, settle))
+                holds.append(Hold(Phase.CONDITION, v, amp, c, settle))
                 holds.extend(Hold(phase, v, amp, trims, step) for phase, trims in steps)
-    holds.append(Hold(Phase.STOP, 0, top, NOMINAL_TRIMS, still))
+    holds.append(Hold(Phase.STOP, 0, top, c, still))
     return Schedule(
         ScheduleName.CHARACTERIZATION.value, tuple(holds), microsteps, plan.sensor_range_g
     )

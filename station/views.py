@@ -171,3 +171,63 @@ def stats_view(docs: Sequence[dict[str, Any]]) -> Group:
     if not tables:
         tables.append(Text("no runs match"))
     return Group(*tables)
+
+
+def _parameter_text(parameters: dict[str, Any]) -> str:
+    """Effect parameters on a few lines: nested per-order entries flattened."""
+    parts: list[str] = []
+    for key, value in parameters.items():
+        if isinstance(value, dict):
+            inner = ", ".join(
+                f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items()
+            )
+            parts.append(f"{key}: {inner}")
+        elif isinstance(value, float):
+            parts.append(f"{key}={value:.4g}")
+        else:
+            parts.append(f"{key}={value}")
+    return "\n".join(parts)
+
+
+def diagnosis_view(doc: dict[str, Any]) -> Group:
+    """What a motion engineer reads first: the verdict, the effects, the fit, where it fails."""
+    fit = doc["fit"]
+    head = Text(
+        f"{doc['serial']}: {'mismatch' if doc['mismatch'] else 'no mismatch'} with the nominal "
+        f"model; held-out residual {fit['before']:.4f} → {fit['after']:.4f} m/s² RMS "
+        f"(χ² {fit['before_chi2']:.0f} → {fit['after_chi2']:.0f}, "
+        f"{len(doc['conditions'])} conditions, {doc['segments']} segments)",
+        style="bold",
+    )
+    effects = Table(title="effects named (strongest first)", box=box.SIMPLE)
+    for column in ("effect", "held-out χ² gain", "parameters"):
+        effects.add_column(column)
+    for e in doc["effects"]:
+        name = e["id"]
+        if e.get("cannot_separate_from"):
+            name += "\nor " + ", ".join(e["cannot_separate_from"]) + " (cannot separate)"
+        effects.add_row(name, f"{e['held_out_chi2_gain']:.0f}", _parameter_text(e["parameters"]))
+    located = Table(title="where the nominal model fails (strongest 10)", box=box.SIMPLE)
+    for column in ("where", "χ²/dof", "confidence"):
+        located.add_column(column)
+    for loc in doc["located"][:10]:
+        if loc["kind"] == "harmonic":
+            where = (f"order {loc['order']} at {loc['amplitude_mA']} mA, "
+                     f"{loc['electrical_hz']:+.1f} Hz")
+        else:
+            where = f"{loc['parameter']} drifts ({loc['trend']})"
+        located.add_row(where, f"{loc['chi2'] / max(loc['dof'], 1):.1f}",
+                        f"{loc['confidence']:.4f}")
+    notes: list[RenderableType] = [Text(f"warning: {w}", style="yellow") for w in doc["warnings"]]
+    for e in doc["effects"]:
+        if e.get("separating_experiment"):
+            notes.append(Text(f"to separate {e['id']}: {e['separating_experiment']}"))
+    if doc.get("report"):
+        notes.append(Text(f"report: {doc['report']}"))
+    notes.append(Text(f"recording: {doc['recording']}"))
+    body: list[RenderableType] = [head]
+    if doc["effects"]:
+        body.append(effects)
+    if doc["located"]:
+        body.append(located)
+    return Group(*body, *notes)

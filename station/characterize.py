@@ -1,0 +1,141 @@
+"""``station characterize`` and ``station diagnose``: orchestration only.
+
+Characterization runs the schedule that makes the effects separable on the
+station's bench, records it like any run (ICD.md §5, beside the database,
+one folder per unit) and diagnoses the recording; diagnosing a recording from
+anywhere is the same second half. The maths lives in ``station.diagnosis``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from station import __version__
+from station.analysis.reader import read_recording
+from station.benches import open_bench
+from station.diagnosis.diagnose import Diagnosis, diagnose
+from station.errors import DeviceStateError, InputError
+from station.procedure import check_identity
+from station.recipes import DEFAULT_RECIPE, load_recipe
+from station.recording import RecordingMetadata, RecordingWriter
+from station.runner import ProgressCallback, run_schedule
+from station.schedules import CharacterizationPlan, characterization_schedule
+from station.serials import parse_serial
+from station.service import RECORDING_SUFFIX, Station, recordings_dir
+
+log = logging.getLogger(__name__)
+
+REPORT_SUFFIX = ".diagnosis.html"
+
+
+@dataclass(frozen=True)
+class DiagnosisResult:
+    """A diagnosis, where its recording came from and where its report went."""
+
+    recording: Path
+    diagnosis: Diagnosis
+    report: Path | None
+
+    def as_dict(self) -> dict[str, Any]:
+        doc = {"recording": str(self.recording), **self.diagnosis.to_dict()}
+        doc["report"] = str(self.report) if self.report is not None else None
+        doc["serial"] = self.diagnosis.observations.metadata.serial
+        return doc
+
+
+def report_path_for(recording: Path) -> Path:
+    return recording.with_name(recording.stem + REPORT_SUFFIX)
+
+
+def diagnose_recording(recording: Path, *, report: Path | None = None, write_report: bool = True,
+                       progress: Callable[[str], None] | None = None) -> DiagnosisResult:
+    """Diagnose one recording; the HTML report goes beside it unless told otherwise."""
+    timeline = read_recording(recording)
+    result = diagnose(timeline, progress)
+    target: Path | None = None
+    if write_report:
+        # Imported here: matplotlib costs a second of start-up that --no-report saves.
+        from station.diagnosis.report import write_report as write_html  # noqa: PLC0415
+
+        target = report if report is not None else report_path_for(recording)
+        write_html(result, target, source=str(recording))
+    return DiagnosisResult(recording, result, target)
+
+
+def characterize(station: Station, serial_label: str, *, recipe_name: str | None = None,
+                 plan: CharacterizationPlan | None = None,
+                 on_progress: ProgressCallback | None = None,
+                 on_step: Callable[[str], None] | None = None,
+                 write_report: bool = True) -> DiagnosisResult:
+    """Run the characterization schedule around the unit's own trims, record, diagnose.
+
+    The drive's trims are only changed in RAM during the run (never stored) and
+    the schedule ends on the trims the drive had, so a characterized unit leaves
+    the bench as it came, disabled.
+    """
+    serial = parse_serial(serial_label)
+    # The recipe names the product (rotor teeth, rating); read before any bus traffic.
+    product = load_recipe(recipe_name or DEFAULT_RECIPE).product
+    chosen = plan or CharacterizationPlan()
+    folder = recordings_dir(station.db_path) / serial.label
+    stamp = datetime.now(UTC).strftime("%Y%m%dT%H%M%SZ")
+    recording = folder / f"{serial.label}-characterization-{stamp}{RECORDING_SUFFIX}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create {folder}: {exc.strerror}") from exc
+    spec = station.bench
+    with open_bench(spec, serial) as session:
+        drive, sensor = session.drive, session.sensor
+        if on_step is not None:
+            on_step("checking identity")
+        check_identity(drive, serial)
+        microsteps = drive.microsteps_per_fullstep()
+        center = drive.read_trims()
+        schedule = characterization_schedule(
+            chosen, microsteps=microsteps, sync_period_s=spec.sync_period_s, center=center
+        )
+        rated = drive.rated_current_mA()
+        if max(chosen.amplitudes_mA) > rated:
+            raise DeviceStateError(
+                drive.name, f"rated {rated} mA, below the plan's {max(chosen.amplitudes_mA)} mA"
+            )
+        sensor.set_range_g(schedule.sensor_range_g)
+        fixture = session.fixture
+        metadata = RecordingMetadata(
+            serial=serial.label,
+            drive_node=spec.drive_node,
+            sensor_node=spec.sensor_node,
+            sync_period_s=spec.sync_period_s,
+            microsteps_per_fullstep=microsteps,
+            rotor_teeth=product.rotor_teeth,
+            rated_current_mA=rated,
+            sensor_lsb_mps2=sensor.lsb_mps2(),
+            tangential_axis=fixture.tangential_axis,
+            sensor_radius_m=fixture.radius_m,
+            gear_ratio=fixture.gear_ratio,
+            extra={
+                "schedule": schedule.name,
+                "bench": spec.name,
+                "station_id": spec.station_id,
+                "operator": station.operator,
+                "station_software": __version__,
+                "recorded_at": stamp,
+                "center_trims": center.as_dict(),
+            },
+        )
+        if on_step is not None:
+            on_step(f"running {len(schedule.holds)} holds around {center.as_dict()}")
+        with RecordingWriter(recording, metadata, clock=session.recording_clock()) as recorder:
+            with session.listening(recorder):
+                run_schedule(schedule, drive, session.clock, on_progress=on_progress)
+            recorder.commit()
+    log.info("characterization of %s recorded in %s", serial.label, recording)
+    if on_step is not None:
+        on_step("diagnosing")
+    return diagnose_recording(recording, write_report=write_report, progress=on_step)
