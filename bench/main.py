@@ -18,6 +18,7 @@ from bench import (
     analysis_speed,
     bench_speed,
     calibration,
+    diagnosis,
     history_speed,
     plant_speed,
     recording_memory,
@@ -48,6 +49,7 @@ def _measures(minute: MinuteRecording) -> dict[str, Measure]:
         "analysis_memory": lambda: analysis_memory.measure(minute),
         "history_speed": history_speed.measure,
         "calibration": calibration.measure,
+        "diagnosis": diagnosis.measure,
     }
 
 

@@ -544,8 +544,9 @@ def nominal_parameters(result: Fit) -> dict[str, Any]:
         "optimal_trims": {
             "offset_a_mA": -float(offsets[0]),
             "offset_b_mA": -float(offsets[1]),
-            "gain_a": GAIN_UNITY / (1.0 + float(gains[0])),
-            "gain_b": GAIN_UNITY / (1.0 + float(gains[1])),
+            # Equal effective gains (1 + e)·g on both phases, their mean at unity.
+            "gain_a": 2 * GAIN_UNITY * (1 + float(gains[1])) / (2 + float(gains[0] + gains[1])),
+            "gain_b": 2 * GAIN_UNITY * (1 + float(gains[0])) / (2 + float(gains[0] + gains[1])),
         },
         "load_angles": friction,
     }
