@@ -1,0 +1,606 @@
+"""A diagnosis as one HTML page a motion-control engineer can check, not just read.
+
+The JSON document says *what* the diagnosis concluded; this page shows the
+evidence behind it: the measured harmonics beside both models' predictions,
+where (order, condition) the nominal model misses and whether the extended
+one closes the gap, how the amplifier's "constants" move between conditions,
+and every candidate the naming rounds tried with the numbers that decided.
+
+The page is one self-contained file (inline SVG, no script, no external
+resource) so it can be mailed, archived with the run and opened years later.
+Figures are drawn on ``matplotlib.figure.Figure`` objects, never through
+pyplot: pyplot keeps every figure in a global registry until it is closed and
+picks a GUI backend, neither of which a station process wants.
+"""
+
+from __future__ import annotations
+
+import html
+import io
+import math
+import os
+from collections.abc import Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib import rc_context
+from matplotlib.axes import Axes
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from numpy.typing import NDArray
+
+from station.core import GAIN_UNITY
+from station.diagnosis.diagnose import (
+    MIN_GAIN_CHI2,
+    MIN_GAIN_FRACTION,
+    SEPARABLE_RATIO,
+    SIGNIFICANT_CONFIDENCE,
+    Diagnosis,
+    LocatedKind,
+    per_condition_constants,
+)
+from station.diagnosis.observations import ConditionKey
+
+MAX_HARMONIC_ROWS = 40
+"""Located harmonic entries listed; beyond this a table stops being read."""
+
+_MEASURED = "#1f4e79"
+_NOMINAL = "#c0392b"
+_EXTENDED = "#27ae60"
+
+_STYLE = """
+body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto;
+       padding: 0 1em; color: #222; line-height: 1.45; }
+h1 { font-size: 1.5em; margin-bottom: 0.2em; }
+h2 { font-size: 1.2em; margin-top: 2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.8em 0; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; vertical-align: top; text-align: left; }
+th { background: #f2f2f2; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
+table.inner td { border: none; padding: 0.05em 0.5em 0.05em 0; }
+tr.chosen td { background: #e8f6ec; font-weight: 600; }
+tr.round td { background: #f7f7f7; font-weight: 600; }
+p.verdict { font-size: 1.1em; }
+.mismatch { color: #a93226; font-weight: 700; }
+.match { color: #1e8449; font-weight: 700; }
+.note { color: #555; font-size: 0.9em; }
+figure { margin: 1em 0; }
+figure svg { max-width: 100%; height: auto; }
+figcaption { color: #444; font-size: 0.9em; }
+"""
+
+
+# --------------------------------------------------------------------------- text
+def _e(text: object) -> str:
+    return html.escape(str(text), quote=True)
+
+
+def _num(value: Any, digits: int = 4) -> str:
+    """Numbers to the precision a fit supports (a few significant digits), never more."""
+    if isinstance(value, bool) or value is None:
+        return "—" if value is None else str(value)
+    if isinstance(value, int | np.integer):
+        return str(int(value))
+    if isinstance(value, float | np.floating):
+        x = float(value)
+        if not math.isfinite(x):
+            return "—"
+        if x == 0.0:
+            return "0"
+        if abs(x) >= 1e6 or abs(x) < 1e-3:
+            return f"{x:.{digits - 1}e}"
+        decimals = max(0, digits - 1 - math.floor(math.log10(abs(x))))
+        return f"{x:.{decimals}f}"
+    return str(value)
+
+
+def _constant(value: float) -> str:
+    """A threshold as the code states it (50, not 50.00)."""
+    return f"{value:g}"
+
+
+def _rms(value: float) -> str:
+    """RMS in m/s²: three significant digits, the noise already blurs the fourth."""
+    return f"{value:.3g}"
+
+
+def _chi2(value: float) -> str:
+    """χ² as the JSON document rounds it (0.1), so the page and the JSON read alike;
+    past a million only the leading digits mean anything."""
+    return f"{value:.1f}" if abs(value) < 1e6 else f"{value:.4e}"
+
+
+def _confidence(value: float) -> str:
+    """Confidence near 1 as its complement: 0.9999999 and 0.9999 must not both read 1.000."""
+    p = 1.0 - float(value)
+    if p <= 0.0:
+        return "> 1 − 1e−16"
+    if p < 1e-4:
+        return f"1 − {p:.1e}"
+    return f"{value:.4f}"
+
+
+def _condition_of(item: Mapping[str, Any]) -> str | None:
+    if "amplitude_mA" in item and "electrical_hz" in item:
+        return ConditionKey(int(item["amplitude_mA"]), float(item["electrical_hz"])).label()
+    return None
+
+
+def _sigma_key(key: str, keys: Sequence[str]) -> str | None:
+    """The key holding ``key``'s 1σ, by the two spellings the diagnosis uses: ``x`` with
+    ``x_sigma``, and ``sigma_<unit>`` beside the one other key in that unit."""
+    if f"{key}_sigma" in keys:
+        return f"{key}_sigma"
+    if key.startswith("sigma_"):
+        return None
+    for other in keys:
+        if other.startswith("sigma_"):
+            unit = other.removeprefix("sigma_")
+            same_unit = [k for k in keys if k != other and unit in k.split("_")]
+            if same_unit == [key]:
+                return other
+    return None
+
+
+def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
+    """Nested parameter documents as (path, "value ± σ") rows, σ beside its value."""
+    if isinstance(value, Mapping):
+        keys = [str(k) for k in value]
+        sigmas = {k: s for k in keys if (s := _sigma_key(k, keys)) is not None}
+        skip = set(sigmas.values())
+        condition = _condition_of(value)
+        if condition is not None:
+            skip |= {"amplitude_mA", "electrical_hz", "direction"}
+        for key in keys:
+            if key in skip:
+                continue
+            path = f"{prefix}.{key}" if prefix else key
+            item = value[key]
+            if key in sigmas and not isinstance(item, Mapping | list | tuple):
+                yield path, f"{_num(item)} ± {_num(value[sigmas[key]], 2)}"
+            else:
+                yield from _flatten(item, path)
+    elif isinstance(value, list | tuple):
+        for i, item in enumerate(value):
+            label = _condition_of(item) if isinstance(item, Mapping) else None
+            yield from _flatten(item, f"{prefix}[{label if label is not None else i}]")
+    else:
+        yield prefix, _num(value)
+
+
+def _parameter_table(parameters: Mapping[str, Any]) -> str:
+    rows = "".join(
+        f"<tr><td>{_e(path)}</td><td class='num'>{_e(text)}</td></tr>"
+        for path, text in _flatten(parameters)
+    )
+    return f"<table class='inner'>{rows}</table>" if rows else "—"
+
+
+def _table(header: Sequence[str], rows: Sequence[str]) -> str:
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
+
+
+def _cells(*cells: str, numeric: Sequence[int] = ()) -> str:
+    """One row; cells are already HTML (escaped by the caller)."""
+    out = "".join(
+        f"<td class='num'>{c}</td>" if i in numeric else f"<td>{c}</td>"
+        for i, c in enumerate(cells)
+    )
+    return f"<tr>{out}</tr>"
+
+
+# --------------------------------------------------------------------------- figures
+def _svg(fig: Figure, salt: str) -> str:
+    """The figure as an inline <svg> element.
+
+    Text stays text (searchable, small); the hash salt keeps the clip-path ids
+    of different figures on one page from colliding.
+    """
+    buf = io.StringIO()
+    with rc_context({"svg.fonttype": "none", "svg.hashsalt": salt}):
+        fig.savefig(buf, format="svg", metadata={"Date": None})
+    text = buf.getvalue()
+    return text[text.index("<svg"):]
+
+
+def _figure(svg: str, caption: str) -> str:
+    return f"<figure>{svg}<figcaption>{_e(caption)}</figcaption></figure>"
+
+
+def _condition_axis(ax: Axes, labels: Sequence[str], *, show: bool = True) -> None:
+    ax.set_xticks(range(len(labels)))
+    if show:
+        ax.set_xticklabels(labels, rotation=45, ha="right", fontsize=7)
+    else:
+        ax.tick_params(axis="x", labelbottom=False)
+    ax.set_xlim(-0.6, len(labels) - 0.4)
+
+
+def _jitter(condition: NDArray[np.intp]) -> NDArray[np.float64]:
+    """x position of every segment: its condition, spread by its rank within it."""
+    x = condition.astype(float)
+    for c in np.unique(condition):
+        rows = np.flatnonzero(condition == c)
+        n = rows.size
+        if n > 1:
+            x[rows] += (np.arange(n) - (n - 1) / 2.0) * (0.36 / (n - 1))
+    return x
+
+
+def _harmonics_figure(d: Diagnosis, labels: Sequence[str]) -> str:
+    obs = d.observations
+    measured = np.abs(obs.phasors)
+    nominal = np.abs(d.nominal.model.predicted(d.nominal.params))
+    extended = np.abs(d.extended.model.predicted(d.extended.params))
+    x = _jitter(obs.condition)
+    orders = obs.orders
+    cols = 2 if orders > 1 else 1
+    rows = math.ceil(orders / cols)
+    fig = Figure(figsize=(10.0, 2.3 * rows + 1.6), layout="constrained")
+    # Every panel sets the same condition ticks itself; only the bottom ones label them.
+    axes = fig.subplots(rows, cols, squeeze=False)
+    for k in range(rows * cols):
+        ax: Axes = axes[k // cols, k % cols]
+        if k >= orders:
+            ax.set_visible(False)
+            continue
+        ax.errorbar(x, measured[:, k], yerr=obs.sigma[:, k], fmt="o", ms=3.5, color=_MEASURED,
+                    ecolor=_MEASURED, elinewidth=0.8, capsize=1.5, zorder=3)
+        ax.plot(x, nominal[:, k], "x", ms=5, color=_NOMINAL, zorder=4)
+        ax.plot(x, extended[:, k], "_", ms=9, mew=1.8, color=_EXTENDED, zorder=5)
+        ax.set_yscale("log")
+        positive = np.concatenate([measured[:, k], nominal[:, k], extended[:, k]])
+        positive = positive[np.isfinite(positive) & (positive > 0)]
+        if positive.size:
+            ax.set_ylim(bottom=0.4 * float(positive.min()))
+        ax.set_title(f"order {k + 1}", fontsize=9, loc="left")
+        ax.set_ylabel("|H| (m/s²)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, which="major", alpha=0.3)
+        _condition_axis(ax, labels, show=k // cols == rows - 1 or k + cols >= orders)
+    handles = [
+        Line2D([], [], marker="o", ls="none", color=_MEASURED, label="measured, ±σ"),
+        Line2D([], [], marker="x", ls="none", color=_NOMINAL, label="nominal model"),
+        Line2D([], [], marker="_", ms=9, mew=1.8, ls="none", color=_EXTENDED,
+               label="extended model"),
+    ]
+    fig.legend(handles=handles, loc="outside upper center", ncol=3, fontsize=9, frameon=False)
+    return _svg(fig, "harmonics")
+
+
+def _chi2_map(residuals: NDArray[np.float64], condition: NDArray[np.intp], conditions: int,
+              orders: int) -> NDArray[np.float64]:
+    """χ² per degree of freedom, (orders, conditions): 1 where the model reaches the noise."""
+    segments = condition.size
+    chi = (residuals.reshape(2, segments, orders) ** 2).sum(axis=0)  # (S, K)
+    out = np.full((orders, conditions), np.nan)
+    for c in range(conditions):
+        rows = condition == c
+        n = int(rows.sum())
+        if n:
+            out[:, c] = chi[rows].sum(axis=0) / (2.0 * n)
+    return out
+
+
+def _residual_map_figure(d: Diagnosis, labels: Sequence[str]) -> str:
+    obs = d.observations
+    conditions = len(obs.conditions)
+    maps = [
+        _chi2_map(d.nominal.residuals, obs.condition, conditions, obs.orders),
+        _chi2_map(d.extended.residuals, obs.condition, conditions, obs.orders),
+    ]
+    values = np.concatenate([m.ravel() for m in maps])
+    values = values[np.isfinite(values) & (values > 0)]
+    low = float(values.min()) if values.size else 0.1
+    high = float(values.max()) if values.size else 10.0
+    low = min(low, 0.5)  # keep the noise level (1) inside the scale
+    high = max(high, 2.0 * low, 2.0)
+    norm = LogNorm(vmin=low, vmax=high)
+    fig = Figure(figsize=(max(8.0, 0.9 * conditions + 3.0), 0.45 * obs.orders + 2.6),
+                 layout="constrained")
+    axes = fig.subplots(1, 2, sharey=True, squeeze=False)[0]
+    image = None
+    annotate = conditions <= 16
+    for ax, grid, title in zip(axes, maps, ("nominal model", "extended model"), strict=True):
+        shown = np.where(np.isfinite(grid) & (grid > 0), grid, low)
+        image = ax.imshow(shown, norm=norm, cmap="viridis", aspect="auto", origin="upper")
+        ax.set_title(title, fontsize=10)
+        ax.set_yticks(range(obs.orders))
+        ax.set_yticklabels([str(k + 1) for k in range(obs.orders)], fontsize=8)
+        _condition_axis(ax, labels)
+        if annotate:
+            for (k, c), v in np.ndenumerate(grid):
+                if np.isfinite(v):
+                    bright = np.log(max(v, low) / low) > 0.6 * np.log(high / low)
+                    ax.text(c, k, f"{v:.2g}", ha="center", va="center", fontsize=6,
+                            color="black" if bright else "white")
+    axes[0].set_ylabel("harmonic order")
+    assert image is not None
+    bar = fig.colorbar(image, ax=list(axes), fraction=0.04)
+    bar.set_label("χ² per degree of freedom (1 = noise)")
+    return _svg(fig, "residuals")
+
+
+def _trims_figure(d: Diagnosis, labels: Sequence[str]) -> str:
+    values, sigmas = per_condition_constants(d.nominal)
+    trims = d.to_dict()["nominal"]["optimal_trims"]
+    error_a = GAIN_UNITY / float(trims["gain_a"]) - 1.0
+    error_b = GAIN_UNITY / float(trims["gain_b"]) - 1.0
+    overall = (float(trims["offset_a_mA"]), float(trims["offset_b_mA"]),
+               -(error_a - error_b) / 2.0 * GAIN_UNITY)
+    titles = ("optimal offset A (mA)", "optimal offset B (mA)", "optimal gain split (1/10000)")
+    fig = Figure(figsize=(10.0, 6.2), layout="constrained")
+    axes = fig.subplots(3, 1, squeeze=False)[:, 0]
+    x = np.arange(len(labels))
+    for i, ax in enumerate(axes):
+        ax.errorbar(x, values[:, i], yerr=sigmas[:, i], fmt="o", ms=4, color=_MEASURED,
+                    capsize=2, label="this condition alone, ±σ")
+        ax.axhline(overall[i], color=_NOMINAL, ls="--", lw=1, label="nominal fit, all conditions")
+        ax.set_ylabel(titles[i], fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(True, alpha=0.3)
+        _condition_axis(ax, labels, show=i == 2)
+    axes[0].legend(fontsize=8, loc="best")
+    return _svg(fig, "trims")
+
+
+def _held_out_figure(d: Diagnosis, labels: Sequence[str]) -> str:
+    x = np.arange(len(labels))
+    width = 0.38
+    fig = Figure(figsize=(max(7.0, 0.7 * len(labels) + 2.0), 3.8), layout="constrained")
+    ax = fig.subplots()
+    nominal = np.maximum(d.nominal_held.chi2, 1e-3)
+    extended = np.maximum(d.extended_held.chi2, 1e-3)
+    ax.bar(x - width / 2, nominal, width, color=_NOMINAL, label="nominal model")
+    ax.bar(x + width / 2, extended, width, color=_EXTENDED, label="extended model")
+    ax.set_yscale("log")
+    ax.set_ylabel("held-out χ²")
+    ax.tick_params(labelsize=7)
+    ax.grid(True, axis="y", alpha=0.3)
+    _condition_axis(ax, labels)
+    ax.legend(fontsize=8)
+    return _svg(fig, "heldout")
+
+
+# --------------------------------------------------------------------------- sections
+def _verdict(d: Diagnosis, doc: Mapping[str, Any]) -> str:
+    fit = doc["fit"]
+    if doc["mismatch"]:
+        verdict = ("<span class='mismatch'>Mismatch</span>: the paper's model does not "
+                   "explain this recording within its noise.")
+    else:
+        verdict = ("<span class='match'>No mismatch</span>: the paper's model explains this "
+                   "recording within its noise.")
+    model = ", ".join(doc["model"]) or "nominal only"
+    lines = [
+        f"<p class='verdict'>{verdict}</p>",
+        "<p>Held-out residual (RMS, m/s²): "
+        f"<b>{_e(_rms(fit['before']))}</b> with the nominal model → "
+        f"<b>{_e(_rms(fit['after']))}</b> with the extended model "
+        f"({_e(model)}). Held-out χ²: {_e(_chi2(fit['before_chi2']))} → "
+        f"{_e(_chi2(fit['after_chi2']))} over {_e(fit['observations'])} observations "
+        f"({_e(d.observations.count)} segments × {_e(d.observations.orders)} orders × "
+        "2 parts, each condition held out in turn).</p>",
+    ]
+    if d.warnings:
+        items = "".join(f"<li>{_e(w)}</li>" for w in d.warnings)
+        lines.append(f"<ul class='note'>{items}</ul>")
+    return "".join(lines)
+
+
+def _effects_section(d: Diagnosis) -> str:
+    if not d.effects:
+        return ("<p>No effect beyond the nominal model wins on held-out conditions; see the "
+                "naming rounds below for what was tried.</p>")
+    rows = []
+    for effect in d.effects:
+        doc = effect.as_dict()
+        rivals = ", ".join(doc.get("cannot_separate_from", [])) or "—"
+        experiment = doc.get("separating_experiment") or "—"
+        rows.append(_cells(
+            f"<b>{_e(doc['id'])}</b>",
+            _e(_chi2(doc["held_out_chi2_gain"])),
+            _e(rivals),
+            _e(experiment),
+            _parameter_table(doc["parameters"]),
+            numeric=(1,),
+        ))
+    return _table(("effect", "held-out χ² gain", "cannot separate from",
+                   "experiment that would separate them", "fitted parameters (± 1σ)"), rows)
+
+
+def _nominal_section(doc: Mapping[str, Any]) -> str:
+    return (
+        "<p>What the nominal model found on all conditions (trims in the drive's units; the "
+        "load angle of each condition and the friction it implies):</p>"
+        + _parameter_table(doc["nominal"])
+    )
+
+
+def _located_section(d: Diagnosis) -> str:
+    conditions = d.observations.conditions
+    harmonic = [loc.as_dict(conditions) for loc in d.located
+                if loc.kind is LocatedKind.HARMONIC]
+    drift = [loc.as_dict(conditions) for loc in d.located
+             if loc.kind is LocatedKind.PARAMETER_DRIFT]
+    harmonic.sort(key=lambda item: float(item["chi2"]), reverse=True)
+    shown = harmonic[:MAX_HARMONIC_ROWS]
+    rows = []
+    for item in shown:
+        where = f"{_condition_of(item)}, order {item['order']}"
+        detail = (f"residual {_num(item['residual_rms_mps2'], 3)} of measured "
+                  f"{_num(item['measured_rms_mps2'], 3)} m/s² RMS")
+        rows.append(_located_row("harmonic", where, item, detail))
+    for item in drift:
+        rows.append(_located_row("parameter drift", str(item["parameter"]), item,
+                                 f"trend {item['trend']}"))
+    note = (f"<p class='note'>{len(harmonic)} harmonic entries located, the "
+            f"{len(shown)} strongest (by χ²) shown; {len(drift)} drift entries, all shown. "
+            f"Located: noise alone would give a χ² this large with probability below "
+            f"{_constant(1.0 - SIGNIFICANT_CONFIDENCE)}.</p>")
+    if not rows:
+        return "<p>Nothing located: the nominal model's residual is noise everywhere.</p>" + note
+    table = _table(("kind", "where", "χ² / dof", "ratio", "confidence", "detail"), rows)
+    return table + note
+
+
+def _located_row(kind: str, where: str, item: Mapping[str, Any], detail: str) -> str:
+    chi2 = float(item["chi2"])
+    dof = int(item["dof"])
+    return _cells(
+        _e(kind), _e(where), _e(f"{_chi2(chi2)} / {dof}"),
+        _e(_num(chi2 / dof, 3) if dof else "—"), _e(_confidence(item["confidence"])),
+        _e(detail), numeric=(2, 3, 4),
+    )
+
+
+def _rounds_section(d: Diagnosis) -> str:
+    if not d.rounds:
+        return "<p>No naming round was run.</p>"
+    rows = []
+    for number, rnd in enumerate(d.rounds, start=1):
+        base = rnd.base_held_chi2
+        needed = max(MIN_GAIN_CHI2, MIN_GAIN_FRACTION * base)
+        chosen = rnd.chosen.value if rnd.chosen is not None else "none"
+        rows.append(
+            f"<tr class='round'><td colspan='5'>Round {number}: base held-out χ² "
+            f"{_e(_chi2(base))}; a candidate must cut it by more than {_e(_chi2(needed))} "
+            f"and lower the BIC; chosen: {_e(chosen)}</td></tr>"
+        )
+        if not rnd.trials:
+            rows.append("<tr><td colspan='5'>no candidate left to try (the others are "
+                        "named or cannot be separated from a named one)</td></tr>")
+        for trial in sorted(rnd.trials, key=lambda t: t.held.total):
+            picked = rnd.chosen is not None and trial.effect is rnd.chosen
+            gain = base - trial.held.total
+            row = _cells(
+                _e(trial.effect.value), _e(_chi2(trial.held.total)), _e(_chi2(gain)),
+                "yes" if gain > needed else "no", _e(_chi2(trial.fit.bic)),
+                numeric=(1, 2, 4),
+            )
+            rows.append(row.replace("<tr>", "<tr class='chosen'>", 1) if picked else row)
+    return _table(("candidate", "held-out χ²", "gain", "gain enough", "BIC"), rows)
+
+
+def _held_out_table(d: Diagnosis, labels: Sequence[str]) -> str:
+    obs = d.observations
+    rows = []
+    for c, label in enumerate(labels):
+        segments = int((obs.condition == c).sum())
+        rows.append(_cells(
+            _e(label), _e(segments), _e(2 * segments * obs.orders),
+            _e(_chi2(d.nominal_held.chi2[c])), _e(_chi2(d.extended_held.chi2[c])),
+            numeric=(1, 2, 3, 4),
+        ))
+    rows.append(_cells(
+        "<b>total</b>", _e(obs.count), _e(2 * obs.count * obs.orders),
+        f"<b>{_e(_chi2(d.nominal_held.total))}</b>",
+        f"<b>{_e(_chi2(d.extended_held.total))}</b>", numeric=(1, 2, 3, 4),
+    ))
+    return _table(("condition held out", "segments", "dof", "nominal χ²", "extended χ²"), rows)
+
+
+def _method() -> str:
+    thresholds = (
+        ("SIGNIFICANT_CONFIDENCE", SIGNIFICANT_CONFIDENCE,
+         "a residual or drift is located when noise alone would reach its χ² with "
+         "probability below 1 minus this"),
+        ("MIN_GAIN_CHI2", MIN_GAIN_CHI2,
+         "least cut of the held-out χ² for an effect to be named"),
+        ("MIN_GAIN_FRACTION", MIN_GAIN_FRACTION,
+         "...and least cut as a fraction of the held-out χ² left before it"),
+        ("SEPARABLE_RATIO", SEPARABLE_RATIO,
+         "a rival leaving less than this times the winner's held-out χ² (plus MIN_GAIN_CHI2) "
+         "cannot be told apart from it"),
+    )
+    rows = [_cells(f"<code>{_e(name)}</code>", _e(_constant(value)), _e(meaning), numeric=(1,))
+            for name, value, meaning in thresholds]
+    return (
+        "<p>The <b>nominal model</b> is the paper's torque model (two phases with sinusoidal "
+        "mutual inductance, the amplifier's offsets and gain errors on the commanded "
+        "currents) driving the fixture's mechanical chain (a rigid disk on the shaft, or a "
+        "belt to a load), seen through the sensor's timing (a delay and an angle offset), "
+        "with one load angle per condition. It is fitted as an <b>equation error</b> on the "
+        "measured motion: carried back through the chain, the measured motion must need the "
+        "torque that the model's currents make on that same motion, at every harmonic order. "
+        "The mismatch is expressed in m/s² of sensor acceleration and weighted by each "
+        "harmonic's measured uncertainty, so χ² counts the misfit in units of the noise "
+        "(χ² per degree of freedom near 1 is noise).</p>"
+        "<p>Every model is judged on conditions <b>held out</b> of its fit: each operating "
+        "condition in turn is predicted by the model fitted to the others (leave one "
+        "condition out, by a one-step approximation of the refit), so a term group that "
+        "only follows the noise of the fitted data cannot win. Candidate effects are added "
+        "one at a time; the best is kept only if it cuts the held-out χ² by more than "
+        f"{_e(_constant(MIN_GAIN_CHI2))} and by more than {_e(f'{MIN_GAIN_FRACTION:.0%}')} of "
+        "what was left, and also lowers <b>Schwarz's criterion</b> (BIC: χ² plus ln n per "
+        "parameter, n the number of fitted values), then the search repeats. A rival whose "
+        f"held-out χ² stays within {_e(_constant(SEPARABLE_RATIO))} times the winner's (plus "
+        f"{_e(_constant(MIN_GAIN_CHI2))}) cannot be told apart from it on these data; the "
+        "experiment that would is named. A residual, or a drift of the amplifier's constants "
+        f"between conditions, is <b>located</b> when its χ² exceeds the "
+        f"{_e(_constant(SIGNIFICANT_CONFIDENCE))} quantile of the χ² distribution of noise "
+        "alone.</p>"
+        + _table(("threshold", "value", "meaning"), rows)
+    )
+
+
+def render_html(diagnosis: Diagnosis, *, source: str) -> str:
+    """The report page as text (``write_report`` stores it)."""
+    doc = diagnosis.to_dict()
+    serial = diagnosis.observations.metadata.serial
+    labels = [key.label() for key in diagnosis.observations.conditions]
+    parts = [
+        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>",
+        f"<title>Diagnosis of {_e(serial)}</title><style>{_STYLE}</style></head><body>",
+        f"<h1>Diagnosis of drive {_e(serial)}</h1>",
+        f"<p class='note'>Recording: {_e(source)}</p>",
+        _verdict(diagnosis, doc),
+        "<h2>Named effects</h2>",
+        _effects_section(diagnosis),
+        "<h2>Nominal model</h2>",
+        _nominal_section(doc),
+        "<h2>Measured vs nominal vs extended</h2>",
+        _figure(_harmonics_figure(diagnosis, labels),
+                "Magnitude of each harmonic of the tangential acceleration, per segment "
+                "(segments of one condition side by side, in recording order). Error bars: "
+                "±σ, the measured phasor's standard uncertainty. Model points are each "
+                "model's prediction for that segment, fitted to all conditions."),
+        "<h2>Where the nominal model fails</h2>",
+        _figure(_residual_map_figure(diagnosis, labels),
+                "χ² per degree of freedom of each model's residual, per harmonic order and "
+                "condition (summed over the condition's segments, both parts of each "
+                "phasor). 1 is the noise; both maps share one colour scale."),
+        "<h2>Trims re-estimated per condition</h2>",
+        _figure(_trims_figure(diagnosis, labels),
+                "The optimal trims (amplifier constants) solved again on each condition "
+                "alone, the rest of the nominal model held. Constants that move with current "
+                "or speed beyond their σ are something the nominal model lacks."),
+        "<h2>Located disagreements</h2>",
+        _located_section(diagnosis),
+        "<h2>Naming rounds</h2>",
+        _rounds_section(diagnosis),
+        "<h2>Held-out χ² per condition</h2>",
+        _figure(_held_out_figure(diagnosis, labels),
+                "χ² of each condition predicted by the model fitted without it."),
+        _held_out_table(diagnosis, labels),
+        "<h2>Method</h2>",
+        _method(),
+        "</body></html>\n",
+    ]
+    return "\n".join(parts)
+
+
+def write_report(diagnosis: Diagnosis, path: Path, *, source: str) -> Path:
+    """Write the report page; readers see the old file or the whole new one, never half."""
+    text = render_html(diagnosis, source=source)
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path

@@ -1,0 +1,154 @@
+"""``station characterize SERIAL`` and ``station diagnose RECORDING``: the CLI.md contract.
+
+One characterization of a simulated unit (about 20 s on the bench) serves
+every test here: its recording is then diagnosed again through ``diagnose``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from station.benches import SIM_SPEC, open_bench
+from station.cli import main
+from station.core import NOMINAL_TRIMS, Trims
+from station.schedules import Hold, Phase, Schedule, ScheduleName, velocity_for
+from station.serials import parse_serial
+from station.sim.record import SimRecordRequest, record_schedule
+
+SERIAL = "SN4242"
+TRIMS = Trims(30.0, -20.0, 10100.0, 9900.0)
+
+
+@dataclass(frozen=True)
+class Characterized:
+    doc: dict[str, Any]
+    exit_code: int
+    home: Path
+    trims_after: Trims
+
+
+def _run(args: list[str]) -> int:
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(sys, "argv", ["station", *args])
+        with pytest.raises(SystemExit) as stop:
+            main()
+    return int(stop.value.code or 0)
+
+
+def _drive_trims(serial: str) -> Trims:
+    with open_bench(SIM_SPEC, parse_serial(serial)) as session:
+        return session.drive.read_trims()
+
+
+@pytest.fixture(scope="module")
+def characterized(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Characterized]:
+    home = tmp_path_factory.mktemp("characterize")
+    capture = pytest.CaptureFixture  # noqa: F841 - documentation: stdout read below
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("STATION_HOME", str(home))
+        patch.delenv("STATION_DB", raising=False)
+        patch.delenv("STATION_BENCH", raising=False)
+        # A unit calibrated before: characterization must run around its own trims.
+        with open_bench(SIM_SPEC, parse_serial(SERIAL)) as session:
+            session.drive.write_trims(TRIMS)
+            session.drive.store()
+        out = home / "out.json"
+        stdout = sys.stdout
+        with out.open("w", encoding="utf-8") as sink:
+            sys.stdout = sink
+            try:
+                code = _run(["characterize", SERIAL, "--json"])
+            finally:
+                sys.stdout = stdout
+        doc = json.loads(out.read_text(encoding="utf-8"))
+        yield Characterized(doc, code, home, _drive_trims(SERIAL))
+
+
+def test_characterize_gives_the_diagnosis_keys_and_its_recording(
+    characterized: Characterized,
+) -> None:
+    doc = characterized.doc
+    assert characterized.exit_code == 0
+    assert {"mismatch", "located", "effects", "fit", "recording"} <= doc.keys()
+    assert {"before", "after"} <= doc["fit"].keys()
+    recording = Path(doc["recording"])
+    assert recording.is_file() and recording.suffix == ".blf"
+    assert recording.parent == characterized.home / "recordings" / SERIAL
+    assert Path(doc["report"]).is_file()
+    assert len(doc["conditions"]) >= 12  # 3 speeds × 3 currents × 2 directions, most of them
+
+
+def test_characterize_leaves_the_unit_with_the_trims_it_came_with(
+    characterized: Characterized,
+) -> None:
+    assert characterized.trims_after == TRIMS
+
+
+def test_characterize_runs_its_trim_steps_around_the_units_own_trims(
+    characterized: Characterized,
+) -> None:
+    from station.analysis.reader import read_recording  # noqa: PLC0415
+
+    timeline = read_recording(Path(characterized.doc["recording"]))
+    offsets_a = set(timeline.trims[timeline.trims_valid, 0].tolist())
+    assert offsets_a == {30, 70}
+
+
+def test_diagnose_reads_the_recording_again_to_the_same_findings(
+    characterized: Characterized, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+) -> None:
+    recording = characterized.doc["recording"]
+    report = tmp_path / "report.html"
+    assert _run(["diagnose", recording, "--json", "--report", str(report)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["effects"] == characterized.doc["effects"]
+    assert doc["fit"]["before"] == pytest.approx(characterized.doc["fit"]["before"])
+    assert report.is_file()
+
+
+def test_diagnose_without_report_writes_nothing_beside_the_recording(
+    characterized: Characterized, capsys: pytest.CaptureFixture[str],
+) -> None:
+    recording = Path(characterized.doc["recording"])
+    before = set(recording.parent.iterdir())
+    assert _run(["diagnose", str(recording), "--json", "--no-report"]) == 0
+    assert json.loads(capsys.readouterr().out)["report"] is None
+    assert set(recording.parent.iterdir()) == before
+
+
+def test_diagnose_of_a_missing_recording_is_an_input_error(tmp_path: Path) -> None:
+    assert _run(["diagnose", str(tmp_path / "absent.blf"), "--json"]) == 2
+
+
+def test_diagnose_of_a_run_at_one_condition_is_an_input_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str],
+) -> None:
+    """One speed, one current, one direction: nothing to hold out, nothing to compare."""
+    v = velocity_for(20.0, 256)
+    schedule = Schedule(
+        "one-condition",
+        (
+            Hold(Phase.STANDSTILL, 0, 1000, NOMINAL_TRIMS, 100),
+            Hold(Phase.CONDITION, v, 1000, NOMINAL_TRIMS, 800),
+            Hold(Phase.STEP_OFFSET_A, v, 1000, Trims(40.0, 0.0, 10000.0, 10000.0), 500),
+            Hold(Phase.STOP, 0, 1000, NOMINAL_TRIMS, 50),
+        ),
+        sensor_range_g=8,
+    )
+    out = tmp_path / "rec" / "one.blf"
+    out.parent.mkdir()
+    record_schedule(
+        SimRecordRequest(out=out, serial=parse_serial("SN4243"),
+                         schedule=ScheduleName.CHARACTERIZATION, effects=frozenset(),
+                         truth=tmp_path / "truth.json"),
+        schedule,
+    )
+    assert _run(["diagnose", str(out), "--json"]) == 2
+    assert "conditions" in capsys.readouterr().err
