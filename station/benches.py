@@ -21,11 +21,12 @@ import logging
 import os
 import tomllib
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
+from typing import Any
 
 import can
 import canopen
@@ -45,7 +46,7 @@ from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import CanopenSensor
 from station.core import Axis, Effect, LoadKind
 from station.errors import DeviceError, InputError
-from station.recording import SimulatedClock
+from station.recording import RecordingMetadata, SimulatedClock
 from station.serials import Serial, parse_serial
 from station.sim.bench import SimBench, SimBenchConfig
 from station.tomltable import TomlTable, toml_error
@@ -254,6 +255,30 @@ class BenchSession:
     network: canopen.Network
     fixture: Fixture
     _listeners: list[can.Listener] = field(default_factory=list)
+
+    def recording_metadata(self, serial: str, *, microsteps: int, rotor_teeth: int,
+                           rated_current_mA: int, extra: Mapping[str, Any]) -> RecordingMetadata:
+        """ICD.md §5 metadata of a recording made on this bench now.
+
+        Nodes and SYNC period come from the bench, geometry from its fixture and
+        the LSB from the sensor (so its range must already be set); the drive's
+        figures are passed in because every caller has read them already.
+        """
+        fixture = self.fixture
+        return RecordingMetadata(
+            serial=serial,
+            drive_node=self.spec.drive_node,
+            sensor_node=self.spec.sensor_node,
+            sync_period_s=self.spec.sync_period_s,
+            microsteps_per_fullstep=microsteps,
+            rotor_teeth=rotor_teeth,
+            rated_current_mA=rated_current_mA,
+            sensor_lsb_mps2=self.sensor.lsb_mps2(),
+            tangential_axis=fixture.tangential_axis,
+            sensor_radius_m=fixture.radius_m,
+            gear_ratio=fixture.gear_ratio,
+            extra=dict(extra),
+        )
 
     def recording_clock(self) -> SimulatedClock | None:
         """Simulated benches stamp frames in simulated time; real ones keep bus time."""

@@ -22,7 +22,7 @@ from station.diagnosis.diagnose import Diagnosis, diagnose
 from station.errors import DeviceStateError, InputError
 from station.procedure import check_identity
 from station.recipes import DEFAULT_RECIPE, load_recipe
-from station.recording import RecordingMetadata, RecordingWriter
+from station.recording import RecordingWriter
 from station.runner import ProgressCallback, run_schedule
 from station.schedules import CharacterizationPlan, characterization_schedule
 from station.serials import parse_serial
@@ -106,19 +106,11 @@ def characterize(station: Station, serial_label: str, *, recipe_name: str | None
                 drive.name, f"rated {rated} mA, below the plan's {max(chosen.amplitudes_mA)} mA"
             )
         sensor.set_range_g(schedule.sensor_range_g)
-        fixture = session.fixture
-        metadata = RecordingMetadata(
-            serial=serial.label,
-            drive_node=spec.drive_node,
-            sensor_node=spec.sensor_node,
-            sync_period_s=spec.sync_period_s,
-            microsteps_per_fullstep=microsteps,
+        metadata = session.recording_metadata(
+            serial.label,
+            microsteps=microsteps,
             rotor_teeth=product.rotor_teeth,
             rated_current_mA=rated,
-            sensor_lsb_mps2=sensor.lsb_mps2(),
-            tangential_axis=fixture.tangential_axis,
-            sensor_radius_m=fixture.radius_m,
-            gear_ratio=fixture.gear_ratio,
             extra={
                 "schedule": schedule.name,
                 "bench": spec.name,

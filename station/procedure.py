@@ -215,20 +215,12 @@ class _Calibration:
         drive, sensor, product = self.drive, self.session.sensor, self.recipe.product
         microsteps = drive.microsteps_per_fullstep()
         sensor.set_range_g(self.recipe.motion.sensor_range_g)
-        fixture = self.session.fixture
         run = self.run_record
-        return RecordingMetadata(
-            serial=self.request.serial.label,
-            drive_node=self.session.spec.drive_node,
-            sensor_node=self.session.spec.sensor_node,
-            sync_period_s=self.period_s,
-            microsteps_per_fullstep=microsteps,
+        return self.session.recording_metadata(
+            self.request.serial.label,
+            microsteps=microsteps,
             rotor_teeth=product.rotor_teeth,
             rated_current_mA=drive.rated_current_mA(),
-            sensor_lsb_mps2=sensor.lsb_mps2(),
-            tangential_axis=fixture.tangential_axis,
-            sensor_radius_m=fixture.radius_m,
-            gear_ratio=fixture.gear_ratio,
             extra={
                 "schedule": run.kind.value,
                 "run_id": run.run_id,

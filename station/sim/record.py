@@ -18,14 +18,13 @@ from pathlib import Path
 from typing import Any, Final
 
 from station import __version__
-from station.benches import SIM_SPEC, BenchSession, SimSettings, open_bench
+from station.benches import SIM_SPEC, SimSettings, open_bench
 from station.core import SENSOR_RANGES_G, Effect, LoadKind, Trims
 from station.errors import DeviceStateError, IdentityMismatch, InputError
 from station.paths import sim_state_dir, truth_dir
 from station.physics.optimum import optimal_trims
 from station.physics.params import UnitParams, derive_unit
 from station.recording import (
-    RecordingMetadata,
     RecordingWriter,
     log_format_for,
     metadata_path_for,
@@ -119,37 +118,14 @@ class SimRecordResult:
         }
 
 
-def _metadata(
-    unit: UnitParams,
-    request: SimRecordRequest,
-    *,
-    microsteps: int,
-    rated_mA: int,
-    lsb: float,
-    session: BenchSession,
-    schedule: str,
-) -> RecordingMetadata:
-    spec, fixture = session.spec, session.fixture
-    return RecordingMetadata(
-        serial=request.serial.label,
-        drive_node=spec.drive_node,
-        sensor_node=spec.sensor_node,
-        sync_period_s=spec.sync_period_s,
-        microsteps_per_fullstep=microsteps,
-        rotor_teeth=unit.rotor_teeth,
-        rated_current_mA=rated_mA,
-        sensor_lsb_mps2=lsb,
-        tangential_axis=fixture.tangential_axis,
-        sensor_radius_m=fixture.radius_m,
-        gear_ratio=fixture.gear_ratio,
-        extra={
-            "schedule": schedule,
-            "bench": "sim",
-            "load": request.load.value,
-            "station_software": __version__,
-            "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        },
-    )
+def _extra(request: SimRecordRequest, schedule: str) -> dict[str, Any]:
+    return {
+        "schedule": schedule,
+        "bench": "sim",
+        "load": request.load.value,
+        "station_software": __version__,
+        "recorded_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
 
 
 def record_simulation(
@@ -211,14 +187,12 @@ def _record(
                 f"planned for {schedule.microsteps}",
             )
         sensor.set_range_g(schedule.sensor_range_g)
-        metadata = _metadata(
-            unit,
-            request,
+        metadata = session.recording_metadata(
+            request.serial.label,
             microsteps=microsteps,
-            rated_mA=drive.rated_current_mA(),
-            lsb=sensor.lsb_mps2(),
-            session=session,
-            schedule=schedule.name,
+            rotor_teeth=unit.rotor_teeth,
+            rated_current_mA=drive.rated_current_mA(),
+            extra=_extra(request, schedule.name),
         )
         with RecordingWriter(
             request.out,
