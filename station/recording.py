@@ -192,14 +192,18 @@ def read_metadata(log_path: Path) -> RecordingMetadata:
     return RecordingMetadata.from_json_dict(doc, source=str(path))
 
 
-def write_json_atomically(path: Path, doc: Mapping[str, Any]) -> None:
-    """Write JSON so that readers see either the old file or the whole new one."""
+def write_text_atomically(path: Path, text: str) -> None:
+    """Write a text file so that readers see either the old file or the whole new one."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(doc, indent=2, sort_keys=False) + "\n", encoding="utf-8")
+        tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def write_json_atomically(path: Path, doc: Mapping[str, Any]) -> None:
+    write_text_atomically(path, json.dumps(doc, indent=2, sort_keys=False) + "\n")
 
 
 class _BatchedMF4Writer(MF4Writer):

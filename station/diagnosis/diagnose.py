@@ -188,6 +188,8 @@ class Diagnosis:
     extended: Fit
     extended_held: HeldOut
     located: tuple[Located, ...]
+    # The optimal trims re-estimated per condition and their σ (per_condition_constants).
+    constants: tuple[NDArray[np.float64], NDArray[np.float64]]
     effects: tuple[NamedEffect, ...]
     rounds: tuple[Round, ...]
     warnings: tuple[str, ...] = field(default_factory=tuple)
@@ -198,8 +200,7 @@ class Diagnosis:
 
     def held_out_rms(self, held: HeldOut) -> float:
         """RMS in m/s² of the held-out residual (each harmonic's both parts)."""
-        sigma = np.concatenate([self.observations.sigma.ravel()] * 2) / math.sqrt(2.0)
-        physical = held.residuals * sigma
+        physical = self.nominal.model.in_mps2(held.residuals)
         return float(math.sqrt(np.mean(physical**2) * 2.0))
 
     def to_dict(self) -> dict[str, Any]:
@@ -252,22 +253,34 @@ def _confidence(chi2: float, dof: int) -> float:
     return float(stats.chi2.cdf(chi2, dof)) if dof > 0 else 0.0
 
 
+def chi2_map(result: Fit) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """A fit's χ² per condition and order, (C, K), and the degrees of freedom per
+    condition, (C,): both parts of every segment's phasor."""
+    obs = result.model.obs
+    res = result.residuals.reshape(2, obs.count, obs.orders)
+    per_segment = (res**2).sum(axis=0)  # (S, K)
+    conditions = len(obs.conditions)
+    chi2 = np.zeros((conditions, obs.orders))
+    np.add.at(chi2, obs.condition, per_segment)
+    dof = 2 * np.bincount(obs.condition, minlength=conditions)
+    return chi2, dof
+
+
 def locate_harmonics(nominal: Fit) -> list[Located]:
     """Per condition and order: χ² of the nominal residual against the noise."""
     obs = nominal.model.obs
-    res = nominal.residuals.reshape(2, obs.count, obs.orders)
-    chi = (res**2).sum(axis=0)  # (S, K)
+    chi2, dofs = chi2_map(nominal)
+    in_mps2 = nominal.model.in_mps2(nominal.residuals)
     out: list[Located] = []
     for c, key in enumerate(obs.conditions):
         rows = obs.condition == c
+        dof = int(dofs[c])
         for k in range(obs.orders):
-            value = float(chi[rows, k].sum())
-            dof = 2 * int(rows.sum())
+            value = float(chi2[c, k])
             conf = _confidence(value, dof)
             if conf < SIGNIFICANT_CONFIDENCE:
                 continue
-            sigma = obs.sigma[rows, k] / math.sqrt(2.0)
-            physical = res[:, rows, k] * sigma
+            physical = in_mps2[:, rows, k]
             out.append(
                 Located(
                     kind=LocatedKind.HARMONIC,
@@ -284,10 +297,12 @@ def locate_harmonics(nominal: Fit) -> list[Located]:
     return out
 
 
-_DRIFT_PARAMETERS: tuple[tuple[str, str, int], ...] = (
-    ("optimal_offset_a_mA", "amp_offset_mA", 0),
-    ("optimal_offset_b_mA", "amp_offset_mA", 1),
-)
+def trim_constants(offsets_mA: NDArray[np.float64], gain_errors: NDArray[np.float64]
+                   ) -> tuple[float, float, float]:
+    """The amplifier's constants as the trims that null them: offsets A and B (mA)
+    and the gain split (1/10000, half the A−B gain difference)."""
+    return (-float(offsets_mA[0]), -float(offsets_mA[1]),
+            -float(gain_errors[0] - gain_errors[1]) / 2.0 * GAIN_UNITY)
 
 
 def per_condition_constants(nominal: Fit) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -325,19 +340,17 @@ def per_condition_constants(nominal: Fit) -> tuple[NDArray[np.float64], NDArray[
         ib = ia + 1
         ga = idx.index(sl["amp_gain_error"].start)
         gb = ga + 1
-        offsets = p[sl["amp_offset_mA"]]
-        gains = p[sl["amp_gain_error"]]
-        values[c] = (-offsets[0], -offsets[1], -(gains[0] - gains[1]) / 2.0 * GAIN_UNITY)
+        values[c] = trim_constants(p[sl["amp_offset_mA"]], p[sl["amp_gain_error"]])
         split_var = (cov[ga, ga] + cov[gb, gb] - 2 * cov[ga, gb]) / 4.0 * GAIN_UNITY**2
         sigmas[c] = np.sqrt([cov[ia, ia], cov[ib, ib], max(split_var, 0.0)])
     return values, sigmas
 
 
-def locate_drift(nominal: Fit) -> list[Located]:
-    """Constants of the nominal model that differ between conditions beyond their σ."""
-    values, sigmas = per_condition_constants(nominal)
-    obs = nominal.model.obs
-    amps = np.array([c.amplitude_mA for c in obs.conditions], dtype=float)
+def locate_drift(values: NDArray[np.float64], sigmas: NDArray[np.float64],
+                 conditions: tuple[ConditionKey, ...]) -> list[Located]:
+    """Constants of the nominal model that differ between conditions beyond their σ
+    (``values``/``sigmas`` from ``per_condition_constants``)."""
+    amps = np.array([c.amplitude_mA for c in conditions], dtype=float)
     out: list[Located] = []
     for column, name in enumerate(("optimal_offset_a_mA", "optimal_offset_b_mA",
                                    "optimal_gain_split")):
@@ -428,7 +441,8 @@ def diagnose_observations(obs: Observations,
             progress("fitting the nominal model")
         nominal = fit_nominal(obs)
         nominal_held = held_out(nominal)
-        located = locate_harmonics(nominal) + locate_drift(nominal)
+        constants = per_condition_constants(nominal)
+        located = locate_harmonics(nominal) + locate_drift(*constants, obs.conditions)
         extended, extended_held, named, rounds = name_effects(obs, nominal, nominal_held, progress)
     warnings: list[str] = []
     if any(e.alternatives for e in named):
@@ -441,6 +455,7 @@ def diagnose_observations(obs: Observations,
         extended=extended,
         extended_held=extended_held,
         located=tuple(located),
+        constants=constants,
         effects=tuple(named),
         rounds=tuple(rounds),
         warnings=tuple(warnings),

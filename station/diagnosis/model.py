@@ -118,12 +118,6 @@ class Layout:
             high[self.slices[b.name]] = b.high
         return low, high
 
-    def names(self) -> list[str]:
-        out: list[str] = []
-        for b in self.blocks:
-            out.extend([b.name] if b.size == 1 else [f"{b.name}[{i}]" for i in range(b.size)])
-        return out
-
 
 @dataclass(frozen=True)
 class ModelSpec:
@@ -134,9 +128,6 @@ class ModelSpec:
 
     def with_effect(self, effect: Effect) -> ModelSpec:
         return ModelSpec(self.chain, self.effects | {effect})
-
-    def without(self, effect: Effect) -> ModelSpec:
-        return ModelSpec(self.chain, self.effects - {effect})
 
 
 def chain_for(gear_ratio: float) -> ChainKind:
@@ -181,6 +172,18 @@ class _Stage:
     spring: float = 0.0  # κ = k/Kt of the spring to the next inertia (0: last inertia)
     spring_damping: float = 0.0
     ratio: float = 1.0  # next angle per this angle through the spring
+
+
+@dataclass(frozen=True)
+class _Motion:
+    """What the error and its linear design are both built on, for one parameter set."""
+
+    a: NDArray[np.complex128]  # load angular acceleration per order (table's frame)
+    torque_per_a: NDArray[np.complex128]  # torque the chain needs per unit of ``a``
+    te: NDArray[np.float64]  # rotor electrical angle on the grid
+    i_a: NDArray[np.float64]
+    i_b: NDArray[np.float64]
+    sensitivity: NDArray[np.complex128]  # d(error)/d(a)
 
 
 class Model:
@@ -317,13 +320,33 @@ class Model:
             u += lam * (2.0 * c2 * i_a * i_b - s2 * (i_a * i_a - i_b * i_b))
         return u
 
-    def _load_acceleration(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
-        """Load angular acceleration (rad/s²) per order, in the current table's angle frame."""
+    def _rotation(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """Per order, what takes a measured phasor into the current table's angle frame:
+        the sensor's delay undone and the table's angle offset applied, (S, K)."""
         sl = self.layout.slices
         delay = p[sl["delay_ms"]][0] * 1e-3
         psi = p[sl["angle_offset_rad"]][0]
-        rotate = np.exp(1j * self.k[None, :] * (self.obs.omega[:, None] * delay - psi))
-        out: NDArray[np.complex128] = self.obs.phasors * rotate / self.radius
+        out: NDArray[np.complex128] = np.exp(
+            1j * self.k[None, :] * (self.obs.omega[:, None] * delay - psi)
+        )
+        return out
+
+    def _motion(self, p: NDArray[np.float64]) -> _Motion:
+        """The measured motion carried back to the rotor, and the currents driving it."""
+        a = self.obs.phasors * self._rotation(p) / self.radius
+        theta, torque_per_a = self._transfer(self._chain(p))
+        ripple = ((theta * a) @ self.synth).real  # rotor angle ripple on the grid (mech. rad)
+        rho = p[self.layout.slices["load_angle_rad"]][self.obs.condition]
+        te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
+        i_a, i_b, i_fund = self._currents(p)
+        # d(error)/d(a): the magnet's spring acting on the rotor's swing, minus the chain.
+        stiffness = -(i_fund * np.cos(rho))[:, None] * self.rotor_teeth
+        return _Motion(a, torque_per_a, te, i_a, i_b, stiffness * theta - torque_per_a)
+
+    def _error(self, p: NDArray[np.float64], m: _Motion) -> NDArray[np.complex128]:
+        """Torque the model makes minus torque the motion needs, per order, (S, K)."""
+        made = self._torque(p, m.te, m.i_a, m.i_b) @ self.analyse
+        out: NDArray[np.complex128] = made - m.torque_per_a * m.a
         return out
 
     # ------------------------------------------------------------------ linear part
@@ -345,12 +368,8 @@ class Model:
         currents, so a couple of passes settle their small cross terms.
         """
         sl = self.layout.slices
-        a = self._load_acceleration(p)
-        theta, torque_per_a = self._transfer(self._chain(p))
-        ripple = ((theta * a) @ self.synth).real
-        rho = p[sl["load_angle_rad"]][self.obs.condition]
-        te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
-        i_a, i_b, i_fund = self._currents(p)
+        m = self._motion(p)
+        te, i_a, i_b = m.te, m.i_a, m.i_b
         s1, c1 = np.sin(te), np.cos(te)
         ga = self.trim_gain[:, :1] * self.amp
         gb = self.trim_gain[:, 1:] * self.amp
@@ -379,55 +398,36 @@ class Model:
             elif name == "reluctance":
                 bases.append(2.0 * np.cos(2 * te) * i_a * i_b - np.sin(2 * te) * (i_a**2 - i_b**2))
         design = np.stack(bases) @ self.analyse  # (L, S, K)
-        stiffness = -(i_fund * np.cos(rho))[:, None] * self.rotor_teeth
-        scale = self.radius / (stiffness * theta - torque_per_a) * self.weight
-        made = self._torque(p, te, i_a, i_b) @ self.analyse
-        error = made - torque_per_a * a
+        scale = self.radius / m.sensitivity * self.weight
         beta = p[self.linear_index()]
-        at_zero = error - np.tensordot(beta, design, axes=1)
+        at_zero = self._error(p, m) - np.tensordot(beta, design, axes=1)
         return at_zero * scale, design * scale[None, :, :]
 
     # ------------------------------------------------------------------ residuals
-    def equation_error(
-        self, p: NDArray[np.float64]
-    ) -> tuple[NDArray[np.complex128], NDArray[np.complex128], NDArray[np.complex128]]:
-        """(error in m/s² of sensor acceleration, load acceleration, its sensitivity), (S, K)."""
-        sl = self.layout.slices
-        a = self._load_acceleration(p)
-        theta, torque_per_a = self._transfer(self._chain(p))
-        rotor = theta * a  # rotor angle ripple per order (mechanical rad)
-        ripple = (rotor @ self.synth).real  # (S, N)
-        rho = p[sl["load_angle_rad"]][self.obs.condition]
-        te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
-        i_a, i_b, i_fund = self._currents(p)
-        made = self._torque(p, te, i_a, i_b) @ self.analyse  # (S, K)
-        error = made - torque_per_a * a
-        # d(error)/d(a): the magnet's spring acting on the rotor's swing, minus the chain.
-        stiffness = -(i_fund * np.cos(rho))[:, None] * self.rotor_teeth
-        sensitivity = stiffness * theta - torque_per_a
-        return error / sensitivity * self.radius, a, sensitivity
+    def equation_error(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
+        """The error as sensor acceleration (m/s²) per segment and order, (S, K)."""
+        m = self._motion(p)
+        out: NDArray[np.complex128] = self._error(p, m) / m.sensitivity * self.radius
+        return out
 
     def residuals(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         """Weighted residuals (real and imaginary parts) for a least-squares solver."""
-        err, _, _ = self.equation_error(p)
-        z = err * self.weight
+        z = self.equation_error(p) * self.weight
         return np.concatenate([z.real.ravel(), z.imag.ravel()])
 
     def predicted(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
         """The harmonics this model says the sensor should have measured (m/s²), (S, K)."""
-        sl = self.layout.slices
-        err, _, _ = self.equation_error(p)
-        delay = p[sl["delay_ms"]][0] * 1e-3
-        psi = p[sl["angle_offset_rad"]][0]
-        back = np.exp(-1j * self.k[None, :] * (self.obs.omega[:, None] * delay - psi))
-        out: NDArray[np.complex128] = self.obs.phasors - err * back
+        out: NDArray[np.complex128] = self.obs.phasors - self.equation_error(p) / self._rotation(p)
+        return out
+
+    def in_mps2(self, weighted: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Weighted residuals (as ``residuals`` lays them out) back in m/s², shape (2, S, K):
+        real and imaginary parts of each segment's and order's residual."""
+        shaped = weighted.reshape(2, self.obs.count, self.obs.orders)
+        out: NDArray[np.float64] = shaped / self.weight
         return out
 
     def residual_rows(self) -> NDArray[np.intp]:
         """Segment index of every entry of ``residuals`` (for holding out conditions)."""
         seg = np.repeat(np.arange(self.obs.count), self.obs.orders)
         return np.concatenate([seg, seg])
-
-    def residual_orders(self) -> NDArray[np.intp]:
-        order = np.tile(np.arange(1, self.obs.orders + 1), self.obs.count)
-        return np.concatenate([order, order])

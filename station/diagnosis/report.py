@@ -18,7 +18,6 @@ from __future__ import annotations
 import html
 import io
 import math
-import os
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,7 +30,6 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 
-from station.core import GAIN_UNITY
 from station.diagnosis.diagnose import (
     MIN_GAIN_CHI2,
     MIN_GAIN_FRACTION,
@@ -39,9 +37,12 @@ from station.diagnosis.diagnose import (
     SIGNIFICANT_CONFIDENCE,
     Diagnosis,
     LocatedKind,
-    per_condition_constants,
+    chi2_map,
+    trim_constants,
 )
+from station.diagnosis.fit import Fit
 from station.diagnosis.observations import ConditionKey
+from station.recording import write_text_atomically
 
 MAX_HARMONIC_ROWS = 40
 """Located harmonic entries listed; beyond this a table stops being read."""
@@ -271,27 +272,17 @@ def _harmonics_figure(d: Diagnosis, labels: Sequence[str]) -> str:
     return _svg(fig, "harmonics")
 
 
-def _chi2_map(residuals: NDArray[np.float64], condition: NDArray[np.intp], conditions: int,
-              orders: int) -> NDArray[np.float64]:
+def _chi2_per_dof(result: Fit) -> NDArray[np.float64]:
     """χ² per degree of freedom, (orders, conditions): 1 where the model reaches the noise."""
-    segments = condition.size
-    chi = (residuals.reshape(2, segments, orders) ** 2).sum(axis=0)  # (S, K)
-    out = np.full((orders, conditions), np.nan)
-    for c in range(conditions):
-        rows = condition == c
-        n = int(rows.sum())
-        if n:
-            out[:, c] = chi[rows].sum(axis=0) / (2.0 * n)
+    chi2, dof = chi2_map(result)
+    out: NDArray[np.float64] = (chi2 / np.maximum(dof, 1)[:, None]).T
     return out
 
 
 def _residual_map_figure(d: Diagnosis, labels: Sequence[str]) -> str:
     obs = d.observations
     conditions = len(obs.conditions)
-    maps = [
-        _chi2_map(d.nominal.residuals, obs.condition, conditions, obs.orders),
-        _chi2_map(d.extended.residuals, obs.condition, conditions, obs.orders),
-    ]
+    maps = [_chi2_per_dof(d.nominal), _chi2_per_dof(d.extended)]
     values = np.concatenate([m.ravel() for m in maps])
     values = values[np.isfinite(values) & (values > 0)]
     low = float(values.min()) if values.size else 0.1
@@ -325,12 +316,8 @@ def _residual_map_figure(d: Diagnosis, labels: Sequence[str]) -> str:
 
 
 def _trims_figure(d: Diagnosis, labels: Sequence[str]) -> str:
-    values, sigmas = per_condition_constants(d.nominal)
-    trims = d.to_dict()["nominal"]["optimal_trims"]
-    error_a = GAIN_UNITY / float(trims["gain_a"]) - 1.0
-    error_b = GAIN_UNITY / float(trims["gain_b"]) - 1.0
-    overall = (float(trims["offset_a_mA"]), float(trims["offset_b_mA"]),
-               -(error_a - error_b) / 2.0 * GAIN_UNITY)
+    values, sigmas = d.constants
+    overall = trim_constants(d.nominal.value("amp_offset_mA"), d.nominal.value("amp_gain_error"))
     titles = ("optimal offset A (mA)", "optimal offset B (mA)", "optimal gain split (1/10000)")
     fig = Figure(figsize=(10.0, 6.2), layout="constrained")
     axes = fig.subplots(3, 1, squeeze=False)[:, 0]
@@ -595,12 +582,5 @@ def render_html(diagnosis: Diagnosis, *, source: str) -> str:
 
 def write_report(diagnosis: Diagnosis, path: Path, *, source: str) -> Path:
     """Write the report page; readers see the old file or the whole new one, never half."""
-    text = render_html(diagnosis, source=source)
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    write_text_atomically(Path(path), render_html(diagnosis, source=source))
+    return Path(path)
