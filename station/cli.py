@@ -350,6 +350,9 @@ def _analysis_tables(doc: dict[str, Any]) -> Group:
     return Group(head, points, *notes)
 
 
+NoReportOption = Annotated[bool, typer.Option("--no-report", help="Write no HTML report.")]
+
+
 @app.command("diagnose")
 def diagnose_command(
     recording: Annotated[
@@ -359,7 +362,7 @@ def diagnose_command(
         Path | None,
         typer.Option("--report", help="HTML report (default: beside the recording)."),
     ] = None,
-    no_report: Annotated[bool, typer.Option("--no-report", help="Write no HTML report.")] = False,
+    no_report: NoReportOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Compare the nominal model with a recording: locate, name and model what is missing.
@@ -381,7 +384,7 @@ def characterize_command(
     bench: BenchOption = None,
     operator: OperatorOption = None,
     recipe: RecipeOption = None,
-    no_report: Annotated[bool, typer.Option("--no-report", help="Write no HTML report.")] = False,
+    no_report: NoReportOption = False,
     as_json: JsonOption = False,
 ) -> None:
     """Run the characterization schedule (speeds both ways, three currents, small trim

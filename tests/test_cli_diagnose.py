@@ -50,7 +50,6 @@ def _drive_trims(serial: str) -> Trims:
 @pytest.fixture(scope="module")
 def characterized(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Characterized]:
     home = tmp_path_factory.mktemp("characterize")
-    capture = pytest.CaptureFixture  # noqa: F841 - documentation: stdout read below
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("STATION_HOME", str(home))
         patch.delenv("STATION_DB", raising=False)

@@ -21,26 +21,14 @@ import numpy as np
 import pytest
 
 from station.analysis.segments import Segment
-from station.core import Axis, Effect, Trims
+from station.core import Effect, Trims
 from station.diagnosis.diagnose import Diagnosis, LocatedKind, diagnose_observations
 from station.diagnosis.model import ChainKind, Model, ModelSpec
 from station.diagnosis.observations import DIAGNOSIS_ORDERS, ConditionKey, Observations
 from station.diagnosis.report import MAX_HARMONIC_ROWS, write_report
-from station.recording import RecordingMetadata
+from tests.metadata import icd_metadata
 
-META = RecordingMetadata(
-    serial="SN1",
-    drive_node=1,
-    sensor_node=16,
-    sync_period_s=0.001,
-    microsteps_per_fullstep=256,
-    rotor_teeth=50,
-    rated_current_mA=1000,
-    sensor_lsb_mps2=0.0024,
-    tangential_axis=Axis.X,
-    sensor_radius_m=0.04,
-    gear_ratio=1.0,
-)
+META = icd_metadata(serial="SN1", sensor_lsb_mps2=0.0024, sensor_radius_m=0.04)
 CONDITIONS = (
     ConditionKey(600, 20.0),
     ConditionKey(600, -20.0),
