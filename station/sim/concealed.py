@@ -101,13 +101,15 @@ def outcome(doc: dict[str, Any]) -> str:
 def confusion(trials: list[Trial]) -> str:
     """Rows: truth; columns: what was named; then the score."""
     columns = sorted({outcome(t.doc) for t in trials} | {NO_EFFECT})
+    # Columns as wide as their names: "a|b" and "a+b" must not be cut down to "a".
+    width = max(len(c) for c in columns) + 2
     lines = ["confusion matrix (rows: truth, columns: diagnosis)",
-             f"{'truth':<20}" + "".join(f"{c[:18]:>20}" for c in columns)]
+             f"{'truth':<20}" + "".join(f"{c:>{width}}" for c in columns)]
     for truth in CLASSES:
         counts = dict.fromkeys(columns, 0)
         for t in trials:
             if t.case.truth == truth:
                 counts[outcome(t.doc)] += 1
-        lines.append(f"{truth:<20}" + "".join(f"{counts[c]:>20}" for c in columns))
+        lines.append(f"{truth:<20}" + "".join(f"{counts[c]:>{width}}" for c in columns))
     lines.append(f"score {sum(t.score for t in trials):.1f} / {len(trials)}")
     return "\n".join(lines)
