@@ -138,6 +138,28 @@ class Drive(ABC):
     def reset(self) -> None:
         """Reset the drive (it reloads stored parameters) and wait until it is back."""
 
+    @property
+    def resettable(self) -> bool:
+        """Whether ``reset`` exists on this transport (ICD.md §4 gives Modbus none)."""
+        return True
+
+    @property
+    def reports_state(self) -> bool:
+        """Whether the drive streams its state on the CAN bus with every SYNC (TPDOs).
+
+        When it does not (a Modbus drive), recordings and analysis only know the
+        drive's state from what the station commanded, and when.
+        """
+        return True
+
+    def check(self) -> None:
+        """Raise a station error if the drive left the state the station put it in.
+
+        Drives that stream their statusword need nothing here: the analysis
+        sees it. Others are polled.
+        """
+        return None
+
     @abstractmethod
     def read_calibration_record(self) -> CalibrationRecord: ...
 

@@ -19,7 +19,7 @@ from enum import IntEnum
 
 import canopen
 
-from drivers.base import CalibrationRecord, DeviceIdentity, Drive, DriveState, decode_statusword
+from drivers.base import CalibrationRecord, DeviceIdentity, Drive, DriveState
 from drivers.canbus import (
     HeartbeatWatch,
     SdoChannel,
@@ -30,6 +30,7 @@ from drivers.canbus import (
     start_node,
 )
 from drivers.cia301 import NmtCommand, NmtState, Signature
+from drivers.cia402 import StateMachine
 from drivers.eds import DeviceKind, load_od
 from station.core import Trims
 from station.errors import DeviceError, DeviceStateError, DeviceTimeout, InputError, StationError
@@ -72,34 +73,12 @@ class CalibrationSub(IntEnum):
     COUNT = 3
 
 
-class Controlword(IntEnum):
-    """CiA 402 device control commands (bits 0-3 and 7 of 0x6040)."""
-
-    DISABLE_VOLTAGE = 0x0000
-    SHUTDOWN = 0x0006
-    SWITCH_ON = 0x0007
-    ENABLE_OPERATION = 0x000F
-    FAULT_RESET = 0x0080
-
-
 PROFILE_VELOCITY_MODE = 3
 STEPPER_DRIVE_DEVICE_TYPE = 0x00030192
 STORE_ON_COMMAND = 0x01
 """Bit 0 of a 0x1010 read: the device saves parameters when commanded."""
 STORE_ALL_SUB = 1
 
-# The path from any stable state towards operation enabled: command, expected state.
-_ENABLE_STEPS: dict[DriveState, tuple[Controlword, DriveState]] = {
-    DriveState.FAULT: (Controlword.FAULT_RESET, DriveState.SWITCH_ON_DISABLED),
-    DriveState.QUICK_STOP_ACTIVE: (Controlword.DISABLE_VOLTAGE, DriveState.SWITCH_ON_DISABLED),
-    DriveState.SWITCH_ON_DISABLED: (Controlword.SHUTDOWN, DriveState.READY_TO_SWITCH_ON),
-    DriveState.READY_TO_SWITCH_ON: (Controlword.SWITCH_ON, DriveState.SWITCHED_ON),
-    DriveState.SWITCHED_ON: (Controlword.ENABLE_OPERATION, DriveState.OPERATION_ENABLED),
-}
-# States the drive leaves by itself; the station only waits them out.
-_TRANSIENT_STATES = frozenset({DriveState.NOT_READY_TO_SWITCH_ON, DriveState.FAULT_REACTION_ACTIVE})
-# States in which the power stage is off: what ``disable`` must reach.
-_DE_ENERGISED_STATES = frozenset({DriveState.SWITCH_ON_DISABLED, DriveState.FAULT})
 _STATE_POLL_S = 0.001
 
 
@@ -137,6 +116,8 @@ class CanopenDrive(Drive):
         try:
             self._sdo = SdoChannel(self._node, name, sdo_timeout_s)
             self._heartbeat = HeartbeatWatch(self._node)
+            self._machine = StateMachine(name, self.statusword, self._command,
+                                         timeout_s=state_timeout_s)
             device_type = self._sdo.read_int(DriveObject.DEVICE_TYPE)
             if device_type != STEPPER_DRIVE_DEVICE_TYPE:
                 raise DeviceError(
@@ -170,26 +151,10 @@ class CanopenDrive(Drive):
         return self._sdo.read_int(DriveObject.STATUSWORD)
 
     def state(self) -> DriveState:
-        return decode_statusword(self.statusword())
+        return self._machine.state()
 
-    def _command(self, controlword: Controlword) -> None:
+    def _command(self, controlword: int) -> None:
         self._sdo.write(DriveObject.CONTROLWORD, 0, int(controlword))
-
-    def _await_state(self, accepted: frozenset[DriveState], what: str) -> DriveState:
-        """Poll the statusword until the drive is in one of ``accepted`` states."""
-        deadline = time.monotonic() + self._state_timeout_s
-        while True:
-            statusword = self.statusword()
-            state = decode_statusword(statusword)
-            if state in accepted:
-                return state
-            if time.monotonic() > deadline:
-                raise DeviceStateError(
-                    self.name,
-                    f"{what}: still {state.value} (statusword 0x{statusword:04X}) "
-                    f"after {self._state_timeout_s} s",
-                )
-            time.sleep(_STATE_POLL_S)
 
     def _select_profile_velocity(self) -> None:
         self._sdo.write(DriveObject.MODES_OF_OPERATION, 0, PROFILE_VELOCITY_MODE)
@@ -207,28 +172,11 @@ class CanopenDrive(Drive):
         # A stale target velocity would start the motor the moment it is enabled.
         self._sdo.write(DriveObject.TARGET_VELOCITY, 0, 0)
         self._select_profile_velocity()
-        # Each step moves one state closer; more steps than states means a loop.
-        for _ in range(len(_ENABLE_STEPS) + len(_TRANSIENT_STATES) + 1):
-            state = self.state()
-            if state is DriveState.OPERATION_ENABLED:
-                return
-            if state in _TRANSIENT_STATES:
-                self._await_state(
-                    frozenset(DriveState) - _TRANSIENT_STATES, f"waiting out {state.value}"
-                )
-                continue
-            command, expected = _ENABLE_STEPS[state]
-            if command is Controlword.FAULT_RESET:
-                # Fault reset acts on the rising edge of bit 7.
-                self._command(Controlword.DISABLE_VOLTAGE)
-            self._command(command)
-            self._await_state(frozenset({expected}), f"{command.name.lower()} from {state.value}")
-        raise DeviceStateError(self.name, "the drive did not reach operation enabled")
+        self._machine.enable()
 
     def disable(self) -> None:
         self._sdo.write(DriveObject.TARGET_VELOCITY, 0, 0)
-        self._command(Controlword.DISABLE_VOLTAGE)
-        self._await_state(_DE_ENERGISED_STATES, "disable voltage")
+        self._machine.disable()
 
     # -- set-points ------------------------------------------------------------
 

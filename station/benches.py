@@ -23,7 +23,7 @@ import tomllib
 import uuid
 from collections.abc import Iterator, Mapping
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -44,6 +44,15 @@ from drivers.canbus import (
 )
 from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import CanopenSensor
+from drivers.modbus_drive import DEFAULT_TCP_PORT, ModbusDrive, ModbusEndpoint
+from drivers.modbus_map import (
+    DEFAULT_UNIT_ID,
+    PTY_PARITY,
+    RTU_BAUDRATE,
+    RTU_PARITY,
+    ModbusLink,
+)
+from station.analysis.commanded import CommandTiming
 from station.core import Axis, Effect, LoadKind
 from station.errors import DeviceError, InputError
 from station.recording import RecordingMetadata, SimulatedClock
@@ -55,6 +64,8 @@ log = logging.getLogger(__name__)
 
 SIM_BENCH = "sim"
 """The bench name meaning the simulated bench in this process (CLI.md)."""
+SIM_MODBUS_BENCH = "sim-modbus"
+"""The simulated bench with its drive reached over Modbus TCP on loopback (ICD.md §4)."""
 BENCH_ENV = "STATION_BENCH"
 DEFAULT_STATION_ID = 1
 _RECEIVE_OWN = "receive_own_messages"
@@ -92,6 +103,39 @@ class SimSettings:
     seed: int = 0
 
 
+DEFAULT_GUARD_S = 0.02
+"""After a Modbus write is acknowledged, samples this much later are trusted to show it:
+the drive applies a write at its next internal cycle (1 ms on typical drives)."""
+DEFAULT_DRIVE_ACCELERATION = 200_000
+"""Microsteps/s²: the drive's profile acceleration as shipped (ICD.md's EDS, 0x6083)."""
+
+
+@dataclass(frozen=True)
+class ModbusSettings:
+    """How a Modbus drive is reached, and what the station assumes about its timing."""
+
+    link: ModbusLink = ModbusLink.TCP
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_TCP_PORT
+    device: str = ""
+    baudrate: int = RTU_BAUDRATE
+    parity: str = RTU_PARITY
+    unit: int = DEFAULT_UNIT_ID
+    timeout_s: float = 0.5
+    guard_s: float = DEFAULT_GUARD_S
+    acceleration: float = DEFAULT_DRIVE_ACCELERATION
+
+    def endpoint(self, *, host: str | None = None, port: int | None = None,
+                 device: str | None = None) -> ModbusEndpoint:
+        return ModbusEndpoint(self.link, host or self.host, port or self.port,
+                              device or self.device, self.baudrate, self.parity, self.unit,
+                              self.timeout_s)
+
+    @property
+    def timing(self) -> CommandTiming:
+        return CommandTiming(self.guard_s, self.acceleration)
+
+
 @dataclass(frozen=True)
 class BenchSpec:
     name: str
@@ -104,13 +148,23 @@ class BenchSpec:
     fixture: Fixture | None = None  # None on a simulated bench: as the simulator mounts it
     sim: SimSettings | None = None
     source: str = SIM_BENCH
+    modbus: ModbusSettings | None = None  # with transport MODBUS
 
     @property
     def simulated(self) -> bool:
         return self.sim is not None
 
+    @property
+    def sees_drive_angle(self) -> bool:
+        """Whether the drive's position demand is on the bus with every SYNC (CANopen)."""
+        return self.transport is Transport.CANOPEN
+
 
 SIM_SPEC = BenchSpec(name=SIM_BENCH, station_id=DEFAULT_STATION_ID, sim=SimSettings())
+SIM_MODBUS_SPEC = BenchSpec(name=SIM_MODBUS_BENCH, station_id=DEFAULT_STATION_ID,
+                            transport=Transport.MODBUS, sim=SimSettings(),
+                            source=SIM_MODBUS_BENCH, modbus=ModbusSettings())
+BUILT_IN_BENCHES = {SIM_BENCH: SIM_SPEC, SIM_MODBUS_BENCH: SIM_MODBUS_SPEC}
 
 
 # --- bench files ------------------------------------------------------------------------------
@@ -169,6 +223,30 @@ def _sim(table: TomlTable | None) -> SimSettings | None:
                        seed=seed)
 
 
+def _modbus(table: TomlTable | None, *, simulated: bool) -> ModbusSettings | None:
+    if table is None:
+        return None
+    base = ModbusSettings()
+    link = table.choice("link", ModbusLink) if table.has("link") else ModbusLink.TCP
+    host = table.string("host", nonempty=True) if table.has("host") else base.host
+    port = table.integer("port", 1, 65535) if table.has("port") else base.port
+    device = table.string("device", nonempty=True) if table.has("device") else ""
+    baudrate = table.integer("baudrate", 1200, 921600) if table.has("baudrate") else base.baudrate
+    parity = table.string("parity") if table.has("parity") else base.parity
+    if table.valid("parity") and parity not in ("N", "E", "O"):
+        table.problem("parity", f"must be N, E or O, got {parity!r}")
+    unit = table.integer("unit", 1, 247, note="Modbus unit IDs") if table.has("unit") else base.unit
+    timeout = table.real("timeout_s", gt=0, le=10) if table.has("timeout_s") else base.timeout_s
+    guard = table.real("guard_s", ge=0, le=1) if table.has("guard_s") else base.guard_s
+    acceleration = (table.real("acceleration", gt=0) if table.has("acceleration")
+                    else base.acceleration)
+    if link is ModbusLink.RTU and not device and not simulated:
+        table.problem("device", "missing: an RTU link needs its serial device (e.g. /dev/ttyUSB0)")
+    table.finish()
+    return ModbusSettings(link or ModbusLink.TCP, host, port, device, baudrate, parity, unit,
+                          timeout, guard, acceleration)
+
+
 def _node(table: TomlTable | None, key: str, default: int) -> int:
     if table is None or not table.has(key):
         return default
@@ -189,8 +267,6 @@ def parse_bench(text: str, *, source: str) -> BenchSpec:
         if top.has("station_id") else DEFAULT_STATION_ID
     )
     transport = top.choice("transport", Transport) if top.has("transport") else Transport.CANOPEN
-    if transport is Transport.MODBUS:
-        top.problem("transport", "Modbus drives are not supported by this station version yet")
     period = (
         top.real("sync_period_s", ge=1e-4, le=0.1)
         if top.has("sync_period_s") else DEFAULT_SYNC_PERIOD_S
@@ -204,6 +280,14 @@ def parse_bench(text: str, *, source: str) -> BenchSpec:
         nodes.finish()
     fixture = _fixture(top.optional_table("fixture"))
     sim = _sim(top.optional_table("sim"))
+    modbus = _modbus(top.optional_table("modbus"), simulated=sim is not None)
+    if transport is Transport.MODBUS and modbus is None:
+        if sim is None:
+            top.problem("modbus", "missing: a Modbus drive needs its link (tcp or rtu) and address")
+        else:
+            modbus = ModbusSettings()
+    if transport is not Transport.MODBUS and top.has("modbus"):
+        top.problem("modbus", "only used with transport = \"modbus\"")
     bus: BusConfig | None = None
     if bus_settings is not None:
         try:
@@ -219,20 +303,22 @@ def parse_bench(text: str, *, source: str) -> BenchSpec:
         raise BenchFileError(f"bench file {source}:\n  " + "\n  ".join(problems))
     return BenchSpec(name=name, station_id=station_id, transport=transport or Transport.CANOPEN,
                      bus=bus, drive_node=drive_node, sensor_node=sensor_node,
-                     sync_period_s=period, fixture=fixture, sim=sim, source=source)
+                     sync_period_s=period, fixture=fixture, sim=sim, source=source,
+                     modbus=modbus if transport is Transport.MODBUS else None)
 
 
 def load_bench(name_or_path: str | None = None) -> BenchSpec:
     """``sim`` (the default, also from ``STATION_BENCH``) or a bench file's path."""
     chosen = name_or_path or os.environ.get(BENCH_ENV) or SIM_BENCH
-    if chosen == SIM_BENCH:
-        return SIM_SPEC
+    if chosen in BUILT_IN_BENCHES:
+        return BUILT_IN_BENCHES[chosen]
     path = Path(chosen).expanduser()
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise BenchFileError(
-            f"bench {chosen!r} is neither {SIM_BENCH!r} nor an existing bench file"
+            f"bench {chosen!r} is neither a built-in bench ({', '.join(BUILT_IN_BENCHES)}) "
+            "nor an existing bench file"
         ) from None
     except OSError as exc:
         raise BenchFileError(f"bench file {path}: cannot be read: {exc.strerror}") from None
@@ -256,6 +342,12 @@ class BenchSession:
     fixture: Fixture
     _listeners: list[can.Listener] = field(default_factory=list)
 
+    @property
+    def command_timing(self) -> CommandTiming | None:
+        """For a drive that reports nothing on the bus: how the station times its writes."""
+        modbus = self.spec.modbus
+        return modbus.timing if modbus is not None and not self.drive.reports_state else None
+
     def recording_metadata(self, serial: str, *, microsteps: int, rotor_teeth: int,
                            rated_current_mA: int, extra: Mapping[str, Any]) -> RecordingMetadata:
         """ICD.md §5 metadata of a recording made on this bench now.
@@ -277,7 +369,7 @@ class BenchSession:
             tangential_axis=fixture.tangential_axis,
             sensor_radius_m=fixture.radius_m,
             gear_ratio=fixture.gear_ratio,
-            extra=dict(extra),
+            extra={"drive_transport": self.spec.transport.value, **extra},
         )
 
     def recording_clock(self) -> SimulatedClock | None:
@@ -305,6 +397,23 @@ def _sim_fixture(bench: SimBench) -> Fixture:
                    bench.unit.gear_ratio)
 
 
+def _open_drive(spec: BenchSpec, network: canopen.Network, sim_bench: SimBench | None) -> Drive:
+    """The drive role over the bench's transport (a simulated Modbus drive: its own server)."""
+    if spec.transport is Transport.CANOPEN:
+        return CanopenDrive(network, spec.drive_node)
+    settings = spec.modbus or ModbusSettings()
+    if sim_bench is None:
+        return ModbusDrive(settings.endpoint())
+    server = sim_bench.modbus
+    if server is None:
+        raise DeviceError(spec.name, "the simulated bench started no Modbus server")
+    if settings.link is ModbusLink.TCP:
+        host, port = server.tcp_address
+        return ModbusDrive(settings.endpoint(host=host, port=port))
+    # A pseudo-terminal refuses parity settings; the simulated line is 8N1.
+    return ModbusDrive(replace(settings.endpoint(device=server.serial_port), parity=PTY_PARITY))
+
+
 @contextmanager
 def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
     """Connect to the bench with the unit ``serial`` on it; everything is released on leaving.
@@ -327,6 +436,8 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
                 sensor_node=spec.sensor_node,
                 sync_period_s=spec.sync_period_s,
                 noise_density_ug=settings.noise_ug,
+                drive_link=spec.modbus.link if spec.modbus is not None else None,
+                modbus_unit=spec.modbus.unit if spec.modbus is not None else DEFAULT_UNIT_ID,
             )))
             bus = BusConfig(interface=VIRTUAL_INTERFACE, channel=channel,
                             options={_RECEIVE_OWN: True})
@@ -336,12 +447,15 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
             options = {_RECEIVE_OWN: True, **base.options}
             bus = BusConfig(base.interface, base.channel, base.bitrate, options)
         network = stack.enter_context(open_network(bus))
-        drive = stack.enter_context(CanopenDrive(network, spec.drive_node))
+        drive = stack.enter_context(_open_drive(spec, network, sim_bench))
         sensor = stack.enter_context(CanopenSensor(network, spec.sensor_node))
         clock: SyncClock
         if sim_bench is not None:
             cob_ids = bench_tpdo_cob_ids(spec.drive_node, spec.sensor_node,
                                          drive_name=drive.name, sensor_name=sensor.name)
+            if not drive.reports_state:
+                # The drive is not on the CAN bus: only the sensor answers each SYNC.
+                cob_ids = {cob: who for cob, who in cob_ids.items() if who == sensor.name}
             clock = SteppedSync(network, period_s=spec.sync_period_s, expected_cob_ids=cob_ids)
         else:
             clock = PeriodicSync(network, period_s=spec.sync_period_s)

@@ -17,6 +17,7 @@ import threading
 import can
 import numpy as np
 
+from station.analysis.commanded import commanded_timeline
 from station.analysis.timeline import (
     PAYLOAD_BYTES,
     FrameKind,
@@ -24,6 +25,7 @@ from station.analysis.timeline import (
     build_timeline,
     icd_frames,
 )
+from station.commands import CommandLog
 from station.errors import DeviceError
 from station.recording import RecordingMetadata
 
@@ -40,6 +42,7 @@ class FrameCapture(can.Listener):
         self._kinds = bytearray()
         self._payloads = bytearray()
         self._malformed = 0
+        self._syncs = 0
 
     def on_message_received(self, msg: can.Message) -> None:
         spec = self._table.get(msg.arbitration_id)
@@ -52,6 +55,8 @@ class FrameCapture(can.Listener):
                 self._malformed += 1
                 return
             self._kinds.append(kind)
+            if kind is FrameKind.SYNC:
+                self._syncs += 1
             # Rows of 8 bytes whatever the kind: a SYNC's counter sits in column 0.
             self._payloads += data
             if size < PAYLOAD_BYTES:
@@ -60,13 +65,22 @@ class FrameCapture(can.Listener):
     def stop(self) -> None:
         """can.Listener protocol: nothing to release."""
 
+    def syncs_seen(self) -> int:
+        """SYNCs seen since attached: the recording's sample index of the next SYNC."""
+        with self._lock:
+            return self._syncs
+
     def mark(self) -> int:
         """A bookmark: ``timeline(since=mark)`` covers only what comes after it."""
         with self._lock:
             return len(self._kinds)
 
-    def timeline(self, since: int = 0) -> Timeline:
-        """Samples from the first SYNC at or after ``since`` up to now."""
+    def timeline(self, since: int = 0, commands: CommandLog | None = None) -> Timeline:
+        """Samples from the first SYNC at or after ``since`` up to now.
+
+        With ``commands`` (a drive that reports nothing on the bus) the drive's
+        columns come from the station's own write log instead.
+        """
         with self._lock:
             kinds = np.frombuffer(bytes(self._kinds[since:]), dtype=np.uint8)
             start = since * PAYLOAD_BYTES
@@ -76,9 +90,17 @@ class FrameCapture(can.Listener):
         if syncs.size == 0:
             raise DeviceError("bus", "no SYNC frame was seen: the bench produced no samples")
         first = int(syncs[0])
-        return build_timeline(
+        timeline = build_timeline(
             self.metadata,
             kinds[first:],
             payloads.reshape(-1, PAYLOAD_BYTES)[first:],
             frames_malformed=malformed,
         )
+        if commands is None:
+            return timeline
+        with self._lock:
+            before = int(np.count_nonzero(
+                np.frombuffer(bytes(self._kinds[: since + first]), dtype=np.uint8)
+                == FrameKind.SYNC))
+        return commanded_timeline(timeline, commands.entries(), commands.timing,
+                                  first_sample=before)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+from station.analysis.estimate import TrimAxis
 from station.core import GAIN_LIMITS, GAIN_UNITY, Trims, offset_limit_mA
 from station.schedules import Hold, Phase, linspace_int
 
@@ -115,3 +116,24 @@ def holds_for(
         Hold(phase, velocity, amplitude_mA, point, cycles + (lead if i == 0 else 0))
         for i, point in enumerate(points)
     )
+
+
+def axis_sweep(centre: Trims, axis: TrimAxis, span: int, points: int,
+               rated_current_mA: int) -> list[Trims]:
+    """``points`` trims over centre ± span along one axis, the others held (the paper's
+    sweep, re-centred): within the drive's range, merged points measured once."""
+    out: list[Trims] = []
+    if axis is TrimAxis.GAIN_SPLIT:
+        split = (centre.gain_a - centre.gain_b) / 2.0
+        candidates = [with_split(centre, split + s) for s in linspace_int(-span, span, points)]
+    elif axis is TrimAxis.OFFSET_A:
+        candidates = [replace(centre, offset_a_mA=centre.offset_a_mA + s)
+                      for s in linspace_int(-span, span, points)]
+    else:
+        candidates = [replace(centre, offset_b_mA=centre.offset_b_mA + s)
+                      for s in linspace_int(-span, span, points)]
+    for candidate in candidates:
+        point = within_drive_range(candidate, rated_current_mA)
+        if point not in out:
+            out.append(point)
+    return out

@@ -87,3 +87,22 @@ class DatabaseError(StationError):
     def __init__(self, database: str, message: str) -> None:
         super().__init__(f"database {database}: {message}")
         self.database = database
+
+
+class ModbusException(DeviceError):
+    """The drive answered a Modbus request with an exception; ``code`` is its exception code.
+
+    Kept as the device sent it (0x02 unknown address, 0x03 value out of range,
+    0x04 device failure, ...) so a technician can look it up in the manual.
+    """
+
+    def __init__(self, device: str, function: int, address: int, code: int,
+                 meaning: str) -> None:
+        super().__init__(
+            device,
+            f"Modbus function 0x{function:02X} at register 0x{address:04X} answered "
+            f"exception 0x{code:02X} ({meaning})",
+        )
+        self.function = function
+        self.address = address
+        self.code = code

@@ -24,7 +24,7 @@ import hashlib
 import logging
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Protocol
@@ -46,8 +46,10 @@ from station.analysis.pipeline import AnalysisOptions, Measured, measure
 from station.analysis.report import fit_summary
 from station.benches import BenchSession, BenchSpec, open_bench
 from station.capture import FrameCapture
+from station.commands import CommandLog, LoggedDrive
 from station.core import GAIN_UNITY, Trims
 from station.designs import (
+    axis_sweep,
     gain_sweep,
     holds_for,
     offset_a_sweep,
@@ -70,7 +72,7 @@ from station.limits import (
     unsupported,
     verdict_for,
 )
-from station.recipes import CoherentSweep, PaperSweep, Recipe
+from station.recipes import CoherentSweep, MagnitudeSweep, PaperSweep, Recipe
 from station.recording import RecordingMetadata, RecordingWriter
 from station.runner import Motion
 from station.runs import LimitCheck, Ripple, Run, Verdict
@@ -83,6 +85,12 @@ log = logging.getLogger(__name__)
 _SAME_SPEED = 0.01
 """Relative speed difference below which a segment belongs to the recipe's condition."""
 _U16_MAX = 0xFFFF
+_PAPER_ORDER = (
+    (Phase.SWEEP_OFFSET_A, TrimAxis.OFFSET_A),
+    (Phase.SWEEP_OFFSET_B, TrimAxis.OFFSET_B),
+    (Phase.SWEEP_GAIN, TrimAxis.GAIN_SPLIT),
+)
+"""The paper's order: each sweep with the trims swept before it already at their vertices."""
 
 
 class Step(StrEnum):
@@ -175,7 +183,8 @@ class _Calibration:
         self.run_record = run
         self.session = session
         self.observer = observer
-        self.drive = session.drive
+        self.drive: Drive = session.drive
+        self.commands: CommandLog | None = None  # a drive that reports nothing on the bus
         self.period_s = session.spec.sync_period_s
         self.velocity = 0
         self.electrical_hz = self.recipe.motion.electrical_hz
@@ -187,6 +196,12 @@ class _Calibration:
         metadata = self._metadata()
         capture = FrameCapture(metadata)
         self.capture = capture
+        timing = self.session.command_timing
+        if timing is not None:
+            # Only the station knows when this drive changed: it logs its own writes
+            # against the SYNCs the recording holds.
+            self.commands = CommandLog(timing, capture.syncs_seen)
+            self.drive = LoggedDrive(self.session.drive, self.commands)
         writer = RecordingWriter(self.request.recording, metadata,
                                  clock=self.session.recording_clock())
         start_cycles = self.session.clock.cycles
@@ -201,6 +216,9 @@ class _Calibration:
 
     def _publish(self, writer: RecordingWriter) -> None:
         """The recording is kept whatever happened: an error is exactly when it is needed."""
+        if self.commands is not None:
+            meta = writer.metadata
+            writer.metadata = replace(meta, extra={**meta.extra, **self.commands.metadata()})
         try:
             path = writer.commit()
         except RecordingError as exc:
@@ -327,7 +345,7 @@ class _Calibration:
         assert self.capture is not None
         mark = self.capture.mark()
         motion.run(holds)
-        timeline = self.capture.timeline(mark)
+        timeline = self.capture.timeline(mark, self.commands)
         measured, rejected = measure(
             timeline, AnalysisOptions(settle_periods=float(motion_spec.settle_periods))
         )
@@ -370,6 +388,10 @@ class _Calibration:
         try:
             if isinstance(sweep, PaperSweep):
                 estimate = self._paper(motion, sweep)
+            elif self.commands is not None:
+                # No drive angle: the coherent method's phases mean nothing here.
+                assert self.recipe.magnitude_sweep is not None  # checked with the request
+                estimate = self._magnitude(motion, self.recipe.magnitude_sweep, centre)
             else:
                 estimate = self._coherent(motion, sweep, centre, baseline)
         except Unsupported as exc:
@@ -386,12 +408,7 @@ class _Calibration:
     def _paper(self, motion: Motion, sweep: PaperSweep) -> TrimEstimate:
         """The paper's three experiments in order, each centred on the previous results."""
         fits: list[ParabolaFit] = []
-        plan = (
-            (Phase.SWEEP_OFFSET_A, TrimAxis.OFFSET_A),
-            (Phase.SWEEP_OFFSET_B, TrimAxis.OFFSET_B),
-            (Phase.SWEEP_GAIN, TrimAxis.GAIN_SPLIT),
-        )
-        for phase, axis in plan:
+        for phase, axis in _PAPER_ORDER:
             if axis is TrimAxis.OFFSET_A:
                 points = offset_a_sweep(sweep.offset_min_mA, sweep.offset_max_mA,
                                         sweep.offset_points)
@@ -407,6 +424,37 @@ class _Calibration:
             fit, warnings = fit_parabola([m.point() for m in measured], axis)
             self.run_record.warnings.extend(warnings)
             fits.append(fit)
+        a, b, g = fits
+        trims = with_split(Trims(a.vertex, b.vertex, GAIN_UNITY, GAIN_UNITY), g.vertex)
+        return TrimEstimate(
+            method=Method.PAPER,
+            trims=trims,
+            sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
+            parabolas=(a, b, g),
+        )
+
+    def _magnitude(self, motion: Motion, sweep: MagnitudeSweep, centre: Trims) -> TrimEstimate:
+        """The paper's parabolas, round after round around the latest vertices.
+
+        Within a round each axis is swept with the previous axes already at their
+        new vertices, as the paper does; the last round gives the estimate.
+        """
+        rated = self.recipe.product.rated_current_mA
+        rounds = list(zip(sweep.offset_spans_mA, sweep.gain_spans, strict=True))
+        fits: list[ParabolaFit] = []
+        for number, (offset_span, gain_span) in enumerate(rounds, start=1):
+            fits = []
+            for phase, axis in _PAPER_ORDER:
+                span = gain_span if axis is TrimAxis.GAIN_SPLIT else offset_span
+                points = axis_sweep(centre, axis, span, sweep.points, rated)
+                self.observer.step(Step.SWEEP, f"round {number}/{len(rounds)}: {axis.value} "
+                                   f"±{span} around {_trims_text(centre)}")
+                measured = self._measure(motion, points, phase)
+                fit, warnings = fit_parabola([m.point() for m in measured], axis)
+                if number == len(rounds):
+                    self.run_record.warnings.extend(warnings)
+                fits.append(fit)
+                centre = within_drive_range(_at_vertex(centre, fit), rated)
         a, b, g = fits
         trims = with_split(Trims(a.vertex, b.vertex, GAIN_UNITY, GAIN_UNITY), g.vertex)
         return TrimEstimate(
@@ -447,15 +495,21 @@ class _Calibration:
         drive.store()
         run.trims_stored = True
         run.trims_after = trims
-        self.observer.step(Step.RESET, "NMT reset node")
-        drive.reset()
-        self.observer.step(Step.READ_BACK, "0x2100")
+        if drive.resettable:
+            self.observer.step(Step.RESET, "NMT reset node")
+            drive.reset()
+        else:
+            run.warnings.append(
+                f"{drive.name}: read back without a reset (the transport has none), so the "
+                "trims were confirmed in the drive's RAM, not reloaded from its EEPROM"
+            )
+        self.observer.step(Step.READ_BACK, "trims")
         back = drive.read_trims()
         run.trims_after = back
         if back != trims:
             raise DeviceError(
                 drive.name,
-                f"after reset the drive holds {_trims_text(back)}, but "
+                f"read back, the drive holds {_trims_text(back)}, but "
                 f"{_trims_text(trims)} were written and stored: the EEPROM did not keep them",
             )
 
@@ -494,6 +548,15 @@ class _Calibration:
             )
         )
         drive.store()
+
+
+def _at_vertex(centre: Trims, fit: ParabolaFit) -> Trims:
+    """``centre`` moved to a parabola's vertex along its axis."""
+    if fit.axis is TrimAxis.OFFSET_A:
+        return replace(centre, offset_a_mA=fit.vertex)
+    if fit.axis is TrimAxis.OFFSET_B:
+        return replace(centre, offset_b_mA=fit.vertex)
+    return with_split(centre, fit.vertex)
 
 
 def _trims_text(t: Trims) -> str:

@@ -113,6 +113,18 @@ class CoherentSweep:
 
 
 @dataclass(frozen=True)
+class MagnitudeSweep:
+    """The paper's parabolas where the drive's electrical angle is unknown (a Modbus
+    drive): per round, offset A, then offset B, then the gain split, each swept
+    over ±span in ``points`` steps around the latest estimate, so the last round's
+    parabolas sit close to the null where they are nearly exact."""
+
+    offset_spans_mA: tuple[int, ...]
+    gain_spans: tuple[int, ...]
+    points: int
+
+
+@dataclass(frozen=True)
 class SelfCheck:
     """The standstill check that the sensor is mounted and quiet before a run."""
 
@@ -162,6 +174,12 @@ class Recipe:
     source: str
     text: str
     sha256: str
+    magnitude_sweep: MagnitudeSweep | None = None  # for benches that see no drive angle
+
+    @property
+    def angle_free(self) -> bool:
+        """Whether the recipe can calibrate a drive whose electrical angle is unknown."""
+        return isinstance(self.sweep, PaperSweep) or self.magnitude_sweep is not None
 
     def hold_periods(self) -> int:
         """Electrical periods of one trim point: settling, then the measured dwell."""
@@ -243,33 +261,49 @@ def _read_paper_sweep(t: TomlTable, rated: int | None) -> PaperSweep:
 
 
 def _read_coherent_sweep(t: TomlTable, rated: int | None) -> CoherentSweep:
-    sweep = CoherentSweep(
-        offset_steps_mA=t.int_array("offset_steps_mA"), gain_steps=t.int_array("gain_steps")
-    )
     half = offset_limit_mA(rated) if rated is not None else None
-    for key, steps, high, note in (
-        (
-            "offset_steps_mA",
-            sweep.offset_steps_mA,
-            half,
-            "at most half of product.rated_current_mA",
-        ),
-        ("gain_steps", sweep.gain_steps, MAX_GAIN_STEP, ""),
-    ):
-        if not t.valid(key):
-            continue  # a mistyped element was reported already
-        if not steps:
-            t.problem(key, "must not be empty: one entry per round")
-        elif len(steps) > MAX_COHERENT_ROUNDS:
-            t.problem(key, f"must have at most {MAX_COHERENT_ROUNDS} rounds, got {len(steps)}")
-        for i, step in enumerate(steps):
-            t.check_int(f"{key}[{i}]", step, 1, high, note=note if high is not None else "")
+    sweep = CoherentSweep(
+        offset_steps_mA=_read_rounds(t, "offset_steps_mA", half,
+                                     "at most half of product.rated_current_mA"),
+        gain_steps=_read_rounds(t, "gain_steps", MAX_GAIN_STEP, ""),
+    )
     rounds_a, rounds_b = len(sweep.offset_steps_mA), len(sweep.gain_steps)
     if t.valid("offset_steps_mA", "gain_steps") and rounds_a and rounds_b and rounds_a != rounds_b:
         t.problem(
             "gain_steps",
             f"must have as many rounds as {t.name('offset_steps_mA')} ({rounds_a}), got {rounds_b}",
         )
+    return sweep
+
+
+def _read_rounds(t: TomlTable, key: str, high: int | None, note: str) -> tuple[int, ...]:
+    steps = t.int_array(key)
+    if not t.valid(key):
+        return steps  # a mistyped element was reported already
+    if not steps:
+        t.problem(key, "must not be empty: one entry per round")
+    elif len(steps) > MAX_COHERENT_ROUNDS:
+        t.problem(key, f"must have at most {MAX_COHERENT_ROUNDS} rounds, got {len(steps)}")
+    for i, step in enumerate(steps):
+        t.check_int(f"{key}[{i}]", step, 1, high, note=note if high is not None else "")
+    return steps
+
+
+def _read_magnitude_sweep(t: TomlTable | None, rated: int | None) -> MagnitudeSweep | None:
+    if t is None:
+        return None
+    half = offset_limit_mA(rated) if rated is not None else None
+    sweep = MagnitudeSweep(
+        offset_spans_mA=_read_rounds(t, "offset_spans_mA", half,
+                                     "at most half of product.rated_current_mA"),
+        gain_spans=_read_rounds(t, "gain_spans", MAX_GAIN_STEP, ""),
+        points=t.integer("points", 3, 21),
+    )
+    rounds_a, rounds_b = len(sweep.offset_spans_mA), len(sweep.gain_spans)
+    if t.valid("offset_spans_mA", "gain_spans") and rounds_a and rounds_b and rounds_a != rounds_b:
+        t.problem("gain_spans", f"must have as many rounds as {t.name('offset_spans_mA')} "
+                  f"({rounds_a}), got {rounds_b}")
+    t.finish()
     return sweep
 
 
@@ -365,6 +399,7 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
     rated = product.rated_current_mA if product_table.valid("rated_current_mA") else None
     motion = _read_motion(root.table("motion"), rated)
     sweep = _read_sweep(root.table("sweep"), method, rated)
+    magnitude_sweep = _read_magnitude_sweep(root.optional_table("magnitude_sweep"), rated)
     self_check = _read_self_check(root.table("self_check"))
     verification = _read_verification(root.table("verification"))
     limits = _read_limits(root.table("limits"), rated)
@@ -387,6 +422,7 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
         source=source,
         text=text,
         sha256=hashlib.sha256(text.encode("utf-8")).hexdigest(),
+        magnitude_sweep=magnitude_sweep,
     )
 
 

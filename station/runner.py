@@ -86,6 +86,9 @@ class Motion:
                 done += step
                 if self._on_progress is not None:
                     self._on_progress(done, total, hold)
+            # A drive polled rather than streaming its state must still be running as told,
+            # or the hold just run measured something else.
+            self._drive.check()
 
     def stop(self) -> None:
         """Disable the drive now; the next ``run`` enables it again from standstill."""

@@ -161,6 +161,13 @@ def _new_run(station: Station, serial: Serial, recipe: Recipe, kind: RunKind) ->
 def _execute(store: Store, station: Station, serial: Serial, recipe: Recipe, run: Run, *,
              observer: Observer | None, previous_trims: Trims | None = None) -> Run:
     """Run the procedure and record the outcome, whatever it is."""
+    if not station.bench.sees_drive_angle and not recipe.angle_free:
+        # Refused before anything is recorded or sent: the operator picked a wrong pair.
+        raise InputError(
+            f"recipe {recipe.name} needs the drive's electrical angle, which a "
+            f"{station.bench.transport.value} drive does not give (bench {station.bench.name}): "
+            "use a recipe with a magnitude_sweep table or method = \"paper\""
+        )
     run_id = store.begin_run(run, recipe.text)
     folder = recordings_dir(station.db_path) / serial.label
     try:

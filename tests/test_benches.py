@@ -7,9 +7,11 @@ from pathlib import Path
 import pytest
 
 from drivers.canbus import BusConfig
+from drivers.modbus_map import ModbusLink
 from station.benches import (
     BENCH_ENV,
     SIM_BENCH,
+    SIM_MODBUS_BENCH,
     SIM_SPEC,
     BenchFileError,
     BenchSpec,
@@ -150,9 +152,54 @@ def test_a_real_bench_without_a_fixture_is_refused() -> None:
     assert "fixture: missing: a real bench must describe its fixture" in message
 
 
-def test_a_modbus_drive_is_refused_as_not_supported_yet() -> None:
+MODBUS_TCP = """
+[modbus]
+link = "tcp"
+host = "192.168.0.20"
+port = 1502
+unit = 3
+guard_s = 0.05
+"""
+
+
+def test_a_modbus_bench_file_names_its_link_and_timing() -> None:
+    spec = parse_bench(REAL.replace('transport = "canopen"', 'transport = "modbus"') + MODBUS_TCP,
+                       source="line3.toml")
+    assert spec.transport is Transport.MODBUS and not spec.sees_drive_angle
+    assert spec.modbus is not None
+    endpoint = spec.modbus.endpoint()
+    assert (endpoint.link, endpoint.host, endpoint.port, endpoint.unit) == (
+        ModbusLink.TCP, "192.168.0.20", 1502, 3)
+    assert spec.modbus.timing.guard_s == 0.05
+    assert spec.modbus.timing.acceleration == 200_000  # the drive's shipped profile
+
+
+def test_a_real_modbus_bench_without_its_link_is_refused() -> None:
     message = refusal(REAL.replace('transport = "canopen"', 'transport = "modbus"'))
-    assert "transport:" in message and "not supported" in message and "yet" in message
+    assert "modbus: missing" in message
+
+
+@pytest.mark.parametrize(("old", "new", "expected"), [
+    ('link = "tcp"', 'link = "rtu"', "modbus.device: missing"),
+    ('unit = 3', 'unit = 300', "modbus.unit: must be in 1..247"),
+    ('guard_s = 0.05', 'guard_s = -1', "modbus.guard_s"),
+    ('port = 1502', 'parity = "X"', "modbus.parity: must be N, E or O"),
+    ('port = 1502', 'baud = 9600', "modbus.baud"),
+])
+def test_a_bad_modbus_table_names_the_field(old: str, new: str, expected: str) -> None:
+    text = REAL.replace('transport = "canopen"', 'transport = "modbus"')
+    message = refusal(text + MODBUS_TCP.replace(old, new))
+    assert expected in message
+
+
+def test_a_modbus_table_on_a_canopen_bench_is_refused() -> None:
+    assert "modbus: only used with transport" in refusal(REAL + MODBUS_TCP)
+
+
+def test_sim_modbus_is_the_simulated_bench_with_a_modbus_drive() -> None:
+    spec = load_bench(SIM_MODBUS_BENCH)
+    assert spec.simulated and spec.transport is Transport.MODBUS
+    assert spec.modbus is not None and spec.modbus.link is ModbusLink.TCP
 
 
 def test_an_unknown_transport_names_the_choices() -> None:
@@ -185,7 +232,7 @@ def test_every_problem_of_a_file_is_reported_at_once() -> None:
     text = REAL.replace("drive = 2", "drive = 0").replace('transport = "canopen"',
                                                           'transport = "modbus"')
     message = refusal(text)
-    assert "nodes.drive" in message and "transport" in message
+    assert "nodes.drive" in message and "modbus: missing" in message
 
 
 # --- simulated benches in a file --------------------------------------------------------------
@@ -256,7 +303,8 @@ def test_bad_toml_is_a_bench_file_error() -> None:
 
 def test_a_missing_bench_file_is_refused(tmp_path: Path) -> None:
     missing = tmp_path / "nowhere.toml"
-    with pytest.raises(BenchFileError, match="neither 'sim' nor an existing bench file") as caught:
+    expected = r"neither a built-in bench \(sim, sim-modbus\) nor an existing bench file"
+    with pytest.raises(BenchFileError, match=expected) as caught:
         load_bench(str(missing))
     assert isinstance(caught.value, InputError)
 

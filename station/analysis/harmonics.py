@@ -122,3 +122,26 @@ def demodulate(
         samples_used=used,
         samples_missing=int(signal.size - used),
     )
+
+
+def phase_drift(
+    per_period: NDArray[np.complex128], orders: Sequence[int]
+) -> tuple[float, float]:
+    """Relative frequency error seen in per-period phasors, and its weight.
+
+    Demodulated at f while the signal runs at f·(1 + δ), the order-k phasor
+    turns by 2πkδ per period. The lag-one product of consecutive periods
+    measures that turn with the strong periods counting most; each order's
+    estimate is weighted by |product|·k², the inverse of its variance up to
+    a common factor. Returns (δ, weight); weight 0 when nothing turned up.
+    """
+    if per_period.shape[0] < 2:
+        return 0.0, 0.0
+    estimate, weight = 0.0, 0.0
+    for j, k in enumerate(orders):
+        lag = complex(np.sum(per_period[1:, j] * np.conj(per_period[:-1, j])))
+        w = abs(lag) * k * k
+        if w > 0:
+            estimate += w * (math.atan2(lag.imag, lag.real) / (2 * math.pi * k))
+            weight += w
+    return (estimate / weight, weight) if weight > 0 else (0.0, 0.0)

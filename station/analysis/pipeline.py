@@ -8,7 +8,7 @@ capture) produced and returns numbers, so every step can be tested on arrays.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 import numpy as np
@@ -23,7 +23,13 @@ from station.analysis.estimate import (
     coherent_estimate,
     paper_estimate,
 )
-from station.analysis.harmonics import DEFAULT_ORDERS, Harmonics, demodulate
+from station.analysis.harmonics import (
+    DEFAULT_ORDERS,
+    Harmonics,
+    demodulate,
+    period_phasors,
+    phase_drift,
+)
 from station.analysis.segments import Rejected, Segment, steady_segments
 from station.analysis.timeline import Timeline
 from station.errors import InputError
@@ -120,6 +126,9 @@ def measure(
     segments, rejected = steady_segments(
         timeline, signal, settle_periods=options.settle_periods
     )
+    if not timeline.drive_reported:
+        segments = [replace(seg, microsteps_per_sample=seg.microsteps_per_sample * (1 + d))
+                    for seg, d in zip(segments, speed_errors(segments, signal), strict=True)]
     out: list[Measured] = []
     for seg in segments:
         window = signal[seg.start : seg.stop]
@@ -132,6 +141,41 @@ def measure(
         saturated = int(np.count_nonzero(timeline.saturated[seg.start : seg.stop]))
         out.append(Measured(seg, h, saturated))
     return out, rejected
+
+
+_DRIFT_ORDERS = (1, 2)
+
+
+def speed_errors(segments: Sequence[Segment], signal: NDArray[np.float64]) -> list[float]:
+    """Per segment, the drive's relative speed error against the station's command.
+
+    Without the drive's position demand the electrical frequency is the
+    commanded one, and a drive whose clock runs off by δ smears every phasor
+    by 2πkδ per period. δ is measured from the phase drift of orders 1 and 2
+    over each segment and pooled over all segments at one commanded speed
+    (one drive clock), so short or quiet segments borrow from the others.
+    """
+    drifts: list[tuple[float, float]] = []
+    for seg in segments:
+        window = signal[seg.start : seg.stop]
+        present = ~np.isnan(window)
+        if not present.any():
+            drifts.append((0.0, 0.0))
+            continue
+        centred = np.where(present, window - np.mean(window[present]), 0.0)
+        spp = 4 * seg.microsteps_per_fullstep / abs(seg.microsteps_per_sample)
+        z = period_phasors(centred, present, seg.electrical_angle(), spp, _DRIFT_ORDERS)
+        drifts.append(phase_drift(z, _DRIFT_ORDERS))
+    out: list[float] = []
+    for seg in segments:
+        same = [d for other, d in zip(segments, drifts, strict=True)
+                if abs(other.microsteps_per_sample - seg.microsteps_per_sample)
+                <= SAME_SPEED * abs(seg.microsteps_per_sample)]
+        weight = sum(w for _, w in same)
+        # The drift is measured against the segment's own direction of rotation.
+        sign = 1.0 if seg.microsteps_per_sample > 0 else -1.0
+        out.append(sign * sum(d * w for d, w in same) / weight if weight > 0 else 0.0)
+    return out
 
 
 SAME_SPEED = 1e-3
@@ -172,12 +216,17 @@ def _condition(amplitude: int, members: Sequence[Measured], sync_period_s: float
     return Condition(amplitude_mA=amplitude, electrical_hz=hz, measured=tuple(ordered))
 
 
-def estimate_condition(condition: Condition, choice: MethodChoice) -> ConditionResult:
+def estimate_condition(condition: Condition, choice: MethodChoice, *,
+                       drive_reported: bool = True) -> ConditionResult:
     """Both estimators where the data allow; the chosen one's result, or why not."""
     points = [m.point() for m in condition.measured]
     estimates: dict[Method, TrimEstimate] = {}
     unsupported: dict[Method, str] = {}
     for method, estimator in ((Method.COHERENT, coherent_estimate), (Method.PAPER, paper_estimate)):
+        if method is Method.COHERENT and not drive_reported:
+            unsupported[method] = ("the drive reported no electrical angle (no TPDOs: a Modbus "
+                                   "drive); only magnitudes are meaningful")
+            continue
         try:
             estimates[method] = estimator(points)
         except Unsupported as exc:
@@ -206,7 +255,7 @@ def _analyze(timeline: Timeline, opts: AnalysisOptions) -> Analysis:
         reasons = sorted({r.reason for r in rejected}) or ["the drive never ran at constant speed"]
         raise EstimateUnsupported(f"no steady segment to analyse: {'; '.join(reasons)}")
     results = [
-        estimate_condition(c, opts.method)
+        estimate_condition(c, opts.method, drive_reported=timeline.drive_reported)
         for c in group_conditions(measured, timeline.sync_period_s)
     ]
     primary = next((r for r in results if r.estimate is not None), None)

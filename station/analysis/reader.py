@@ -25,6 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.cia301 import SYNC_COB_ID
+from station.analysis.commanded import (
+    DRIVE_COMMANDS_KEY,
+    commanded_timeline,
+    commands_from_metadata,
+)
 from station.analysis.timeline import (
     PAYLOAD_BYTES,
     FrameKind,
@@ -73,13 +78,18 @@ def read_recording(log_path: Path) -> Timeline:
     log_format = log_format_for(log_path)
     metadata = read_metadata(log_path)
     frames = read_log_frames(log_path, log_format, metadata)
-    return build_timeline(
+    timeline = build_timeline(
         metadata,
         frames.kinds,
         frames.payloads,
         frames_ignored=frames.frames_ignored,
         frames_malformed=frames.frames_malformed,
     )
+    if DRIVE_COMMANDS_KEY in metadata.extra:
+        # A drive that sent nothing on the bus (Modbus): the station's log stands in for it.
+        commands, timing = commands_from_metadata(metadata.extra)
+        timeline = commanded_timeline(timeline, commands, timing)
+    return timeline
 
 
 def read_log_frames(
@@ -104,8 +114,11 @@ def read_log_frames(
             f"the metadata says {expected} were recorded"
         )
     counts = np.bincount(scan.kinds, minlength=len(FrameKind))
+    # A drive reached over Modbus sends nothing on the bus; the station's write log
+    # in the metadata stands in for its frames.
+    drive_on_bus = DRIVE_COMMANDS_KEY not in metadata.extra
     for kind, name in _NAMES.items():
-        if counts[kind] == 0:
+        if counts[kind] == 0 and (drive_on_bus or kind is not FrameKind.DRIVE_STATUS):
             raise RecordingError(f"{log_path}: the log holds no {name} frame")
     return scan
 

@@ -57,6 +57,9 @@ class Timeline:
     trims: NDArray[np.int32]  # (N, 4): offset A, offset B (I16), gain A, gain B (U16)
     trims_valid: NDArray[np.bool_]  # (N,) drive TPDO2 present
     losses: LossReport
+    # False when the drive columns are the station's own commands (a Modbus drive sends
+    # no TPDOs): the position demand's phase is then arbitrary, its magnitudes are not.
+    drive_reported: bool = True
 
     @property
     def samples(self) -> int:

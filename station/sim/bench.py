@@ -7,6 +7,11 @@ bus lets it. Per SYNC, in this order: (1) the plant is advanced over the period
 that just ended with the drive's inputs in effect; (2) writes held since the
 last SYNC take effect; (3) the OPERATIONAL devices send their TPDOs sampled at
 this instant: sensor TPDO1 first, then drive TPDO1 and TPDO2.
+
+The drive may instead be reached over Modbus (``SimBenchConfig.drive_link``,
+ICD.md §4): it is then off the CAN bus (no NMT, SDO, heartbeat or PDO) and boots
+by itself at power-on, but its cycle still runs at every SYNC, so the plant
+follows its commands; only the sensor answers SYNC on the bus.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import canopen
 
 from drivers.canbus import DEFAULT_CHANNEL, VIRTUAL_INTERFACE
 from drivers.cia301 import SYNC_COB_ID
+from drivers.modbus_map import DEFAULT_UNIT_ID, ModbusLink
 from station.core import Effect, LoadKind
 from station.paths import sim_state_dir
 from station.physics.params import UnitParams, derive_unit
@@ -29,6 +35,7 @@ from station.physics.plant import Plant
 from station.serials import parse_serial
 from station.sim import eeprom
 from station.sim.devices import SimDrive, SimSensor
+from station.sim.modbus import DEFAULT_WATCHDOG_S, SimModbusServer
 from station.sim.trajectory import period_us
 
 _log = logging.getLogger(__name__)
@@ -50,6 +57,9 @@ class SimBenchConfig:
     sync_period_s: float = 0.001
     substeps: int = 8
     noise_density_ug: float | None = None
+    drive_link: ModbusLink | None = None  # None: the drive is on the CAN bus (CANopen)
+    modbus_unit: int = DEFAULT_UNIT_ID
+    modbus_watchdog_s: float = DEFAULT_WATCHDOG_S  # 0: no communication watchdog
 
 
 class SimBench:
@@ -61,7 +71,7 @@ class SimBench:
     """
 
     def __init__(self, config: SimBenchConfig, *, state_dir: Path | None = None) -> None:
-        if config.drive_node == config.sensor_node:
+        if config.drive_link is None and config.drive_node == config.sensor_node:
             raise ValueError(f"drive and sensor cannot share node-ID {config.drive_node}")
         self.config = config
         serial = parse_serial(config.serial)
@@ -93,7 +103,18 @@ class SimBench:
         self.sensor = SimSensor(config.sensor_node, self.plant, period_us=period, lock=self._lock)
         self._network: canopen.Network | None = None
         self._bus: can.BusABC | None = None
+        self._modbus: SimModbusServer | None = None
         self._closed = False
+
+    @property
+    def drive_on_can(self) -> bool:
+        """Whether the drive is a CANopen node on the bus (else it is reached over Modbus)."""
+        return self.config.drive_link is None
+
+    @property
+    def modbus(self) -> SimModbusServer | None:
+        """The drive's running Modbus server; None for a CANopen drive or a closed bench."""
+        return self._modbus
 
     def start(self) -> None:
         """Connect to the virtual bus and power the devices on; no-op when running."""
@@ -108,25 +129,44 @@ class SimBench:
         network.NOTIFIER_CYCLE = _NOTIFIER_CYCLE_S
         self._network, self._bus = network, bus
         try:
-            self.drive.attach(network)
+            if self.drive_on_can:
+                self.drive.attach(network)
             self.sensor.attach(network)
             network.subscribe(SYNC_COB_ID, self._on_sync)
             network.connect()
-            self.drive.boot()
+            if self.drive_on_can:
+                self.drive.boot()
+            else:
+                self.drive.boot_standalone()
             self.sensor.boot()
+            link = self.config.drive_link
+            if link is not None:
+                self._modbus = SimModbusServer(
+                    self.drive,
+                    link,
+                    unit=self.config.modbus_unit,
+                    watchdog_s=self.config.modbus_watchdog_s,
+                )
+                self._modbus.start()
         except BaseException:
             self.close()
             raise
 
     def close(self) -> None:
-        """Stop heartbeats, the bus reader and the bus; harmless when already closed."""
+        """Stop the Modbus server, heartbeats, the bus reader and the bus; harmless when
+        already closed."""
         self._closed = True
+        modbus, self._modbus = self._modbus, None
         network, self._network, self._bus = self._network, None, None
-        if network is None:
-            return
-        self.drive.stop()
-        self.sensor.stop()
-        network.disconnect()
+        try:
+            if modbus is not None:
+                modbus.close()
+        finally:
+            if network is not None:
+                if self.drive_on_can:
+                    self.drive.stop()
+                self.sensor.stop()
+                network.disconnect()
 
     def __enter__(self) -> SimBench:
         self.start()
@@ -153,7 +193,7 @@ class SimBench:
                 self.sync_count += 1
                 # Pack every frame before sending any: once the first frame is out, the
                 # station's threads wake up and compete for the interpreter.
-                burst = [*sensor.frames(), *drive.frames()]
+                burst = [*sensor.frames(), *(drive.frames() if self.drive_on_can else ())]
                 for message in burst:
                     bus.send(message)
             except Exception:

@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import struct
 import threading
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from enum import Enum, IntEnum
 from pathlib import Path
 from typing import Protocol
@@ -345,6 +345,98 @@ class SimNode:
                 if tpdo.enabled:
                     yield tpdo.frame()
 
+    def boot_standalone(self) -> None:
+        """Power on off the CAN bus (a drive reached over Modbus): no NMT, no heartbeat.
+
+        The application starts as after NMT "reset node"; the communication
+        objects already hold their power-on values.
+        """
+        with self._lock:
+            self.reset_application()
+
+    # Direct access (another transport: the Modbus facade) -----------------------------------
+
+    def read_object(self, key: ObjectKey) -> int:
+        """An integer object as an SDO upload gives it: live values, CiA 301 aborts."""
+        return self.read_objects([key])[0]
+
+    def read_objects(self, keys: Sequence[ObjectKey]) -> list[int]:
+        """Several objects from one instant (no SYNC can fall between two of them)."""
+        with self._lock:
+            raws = [self.node.get_data(*key, check_readable=True) for key in keys]
+        values: list[int] = []
+        for key, raw in zip(keys, raws, strict=True):
+            value = self.variables[key].decode_raw(raw)
+            if not isinstance(value, int):
+                raise TypeError(f"{key_text(key)} is not an integer object")
+            values.append(value)
+        return values
+
+    def write_object(self, key: ObjectKey, value: int) -> None:
+        """Write as an SDO download does, through the same checks (access, EDS range,
+        then the object's handler): a refusal raises ``SdoAbortedError`` with the CiA
+        301 abort code and changes nothing. Takes effect at the next SYNC, like SDO."""
+        with self._lock:
+            self.node.set_data(*key, self._encode(key, value), check_writable=True)
+
+    def write_objects(self, writes: Sequence[tuple[ObjectKey, int]]) -> None:
+        """Several writes as one: all of them are applied, or none is.
+
+        Each is checked as ``write_object`` does, in order, so a later one sees the
+        earlier ones (as consecutive SDO downloads would); if one is refused, the
+        device state is rolled back before the abort propagates. The lock is held
+        throughout, so neither a SYNC nor an SDO sees a half-applied set. Effects
+        outside the device (the EEPROM file, a heartbeat producer) cannot be rolled
+        back: a store belongs alone in such a set, or last.
+        """
+        with self._lock:
+            saved = self._snapshot()
+            try:
+                for key, value in writes:
+                    self.write_object(key, value)
+            except BaseException:
+                self._rollback(saved)
+                raise
+
+    def _encode(self, key: ObjectKey, value: int) -> bytes:
+        # canopen's own lookup gives the SDO abort code of a missing object.
+        var: ODVariable = self.node._find_object(*key)  # type: ignore[no-untyped-call]
+        if var.data_type not in datatypes.INTEGER_TYPES:
+            raise TypeError(f"{key_text(key)} is not an integer object")
+        low, high = _type_range(var)
+        if not low <= value <= high:
+            raise SdoAbortedError(AbortCode.VALUE_RANGE)
+        # Packed directly: ODVariable.encode_raw would log the EDS range warnings
+        # that the write callback then turns into the abort.
+        packed: bytes = ODVariable.STRUCT_TYPES[var.data_type].pack(value)
+        return packed
+
+    def _snapshot(self) -> tuple[dict[str, object], dict[int, dict[int, bytes]]]:
+        """Everything a handler may change: this object's attributes, canopen's store.
+
+        Kept generic (every attribute, dicts copied) so that a handler added later
+        is rolled back too without anyone remembering to list what it touches.
+        """
+        attributes = {
+            name: dict(value) if isinstance(value, dict) else value
+            for name, value in vars(self).items()
+        }
+        stored = {index: dict(subs) for index, subs in self.node.data_store.items()}
+        return attributes, stored
+
+    def _rollback(self, saved: tuple[dict[str, object], dict[int, dict[int, bytes]]]) -> None:
+        attributes, stored = saved
+        for name, value in attributes.items():
+            current = getattr(self, name)
+            if isinstance(current, dict) and isinstance(value, dict):
+                # In place: TPDO sources and live readers hold these very dicts.
+                current.clear()
+                current.update(value)
+            else:
+                setattr(self, name, value)
+        self.node.data_store.clear()
+        self.node.data_store.update(stored)
+
     # canopen callbacks ---------------------------------------------------------------------
 
     def _on_read(self, index: int, subindex: int, od: ODVariable) -> Value | None:
@@ -600,6 +692,19 @@ class SimDrive(SimNode):
     def effective_trims(self) -> tuple[int, int, int, int]:
         """The trims in effect (those TPDO2 reports), as the drive's integers."""
         return self._effective_trims
+
+    def communication_lost(self) -> bool:
+        """React to a master that fell silent (the Modbus watchdog); True if it was running.
+
+        Nobody supervises the motor any more, so a running drive stops: target
+        velocity 0 and "disable voltage" into SWITCH ON DISABLED (CiA 402 0x6007
+        option 2), from where the master must enable it again explicitly.
+        """
+        with self._lock:
+            if self.state is not DriveState.OPERATION_ENABLED:
+                return False
+            self._enter(DriveState.SWITCH_ON_DISABLED)
+            return True
 
     def trip(self, code: FaultCode) -> None:
         """Fault the drive (fault reaction ends in FAULT): de-energise and send EMCY."""
