@@ -8,6 +8,7 @@ normally or by an exception, disables the drive; closing twice is harmless.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from enum import Enum
@@ -17,6 +18,7 @@ import numpy as np
 import numpy.typing as npt
 
 from station.core import Trims
+from station.errors import InputError
 
 
 class DriveState(Enum):
@@ -129,6 +131,13 @@ class Drive(ABC):
 
     @abstractmethod
     def read_trims(self) -> Trims: ...
+
+    def _stored_form(self, trims: Trims) -> tuple[int, int, int, int]:
+        """The integers a write of ``trims`` sends; NaN or infinity refused before any request."""
+        raw = (trims.offset_a_mA, trims.offset_b_mA, trims.gain_a, trims.gain_b)
+        if not all(math.isfinite(value) for value in raw):
+            raise InputError(f"{self.name}: trims must be finite numbers, not {trims}")
+        return trims.integers()
 
     @abstractmethod
     def store(self) -> None:

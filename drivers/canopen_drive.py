@@ -13,7 +13,6 @@ evidence: the SDO abort code, or which object timed out.
 from __future__ import annotations
 
 import logging
-import math
 import time
 from enum import IntEnum
 
@@ -33,7 +32,7 @@ from drivers.cia301 import NmtCommand, NmtState, Signature
 from drivers.cia402 import StateMachine
 from drivers.eds import DeviceKind, load_od
 from station.core import Trims
-from station.errors import DeviceError, DeviceStateError, DeviceTimeout, InputError, StationError
+from station.errors import DeviceError, DeviceStateError, DeviceTimeout, StationError
 
 log = logging.getLogger(__name__)
 
@@ -197,22 +196,7 @@ class CanopenDrive(Drive):
         Analysis therefore segments by the trims in effect (TPDO2), never by
         when the station wrote them.
         """
-        raw = (trims.offset_a_mA, trims.offset_b_mA, trims.gain_a, trims.gain_b)
-        if not all(math.isfinite(value) for value in raw):
-            raise InputError(f"{self.name}: trims must be finite numbers, not {trims}")
-        rounded = trims.rounded()
-        values = dict(
-            zip(
-                TrimSub,
-                (
-                    int(rounded.offset_a_mA),
-                    int(rounded.offset_b_mA),
-                    int(rounded.gain_a),
-                    int(rounded.gain_b),
-                ),
-                strict=True,
-            )
-        )
+        values = dict(zip(TrimSub, self._stored_form(trims), strict=True))
         for sub, value in values.items():
             self._sdo.check(DriveObject.TRIMS, sub, value)
         previous = self._read_trim_values()

@@ -18,7 +18,6 @@ request without answer is a ``DeviceTimeout`` naming the endpoint.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 from dataclasses import dataclass
 
@@ -268,23 +267,13 @@ class ModbusDrive(Drive):
     def set_amplitude(self, amplitude_mA: int) -> None:
         self._write({Register.AMPLITUDE: amplitude_mA})
 
-    def amplitude_mA(self) -> int:
-        return self._read(Register.AMPLITUDE)
-
-    def position_demand(self) -> int:
-        return self._read(Register.POSITION_DEMAND)
-
     # -- trims -----------------------------------------------------------------
 
     def write_trims(self, trims: Trims) -> None:
         """All four trims in one request: the drive takes all of them or none."""
-        raw = (trims.offset_a_mA, trims.offset_b_mA, trims.gain_a, trims.gain_b)
-        if not all(math.isfinite(value) for value in raw):
-            raise InputError(f"{self.name}: trims must be finite numbers, not {trims}")
+        values = self._stored_form(trims)
         self._raise_if_dropped()
-        rounded = trims.rounded()
-        values = (rounded.offset_a_mA, rounded.offset_b_mA, rounded.gain_a, rounded.gain_b)
-        self._write({r: int(v) for r, v in zip(TRIM_REGISTERS, values, strict=True)})
+        self._write(dict(zip(TRIM_REGISTERS, values, strict=True)))
 
     def read_trims(self) -> Trims:
         values = self._read_block(TRIM_REGISTERS)

@@ -26,7 +26,7 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Any
+from typing import Any, Final
 
 import can
 import canopen
@@ -44,12 +44,10 @@ from drivers.canbus import (
 )
 from drivers.canopen_drive import CanopenDrive
 from drivers.canopen_sensor import CanopenSensor
-from drivers.modbus_drive import DEFAULT_TCP_PORT, ModbusDrive, ModbusEndpoint
+from drivers.modbus_drive import ModbusDrive, ModbusEndpoint
 from drivers.modbus_map import (
     DEFAULT_UNIT_ID,
     PTY_PARITY,
-    RTU_BAUDRATE,
-    RTU_PARITY,
     ModbusLink,
 )
 from station.analysis.commanded import CommandTiming
@@ -110,30 +108,16 @@ DEFAULT_DRIVE_ACCELERATION = 200_000
 """Microsteps/s²: the drive's profile acceleration as shipped (ICD.md's EDS, 0x6083)."""
 
 
+DEFAULT_ENDPOINT: Final = ModbusEndpoint(ModbusLink.TCP)
+DEFAULT_TIMING: Final = CommandTiming(DEFAULT_GUARD_S, DEFAULT_DRIVE_ACCELERATION)
+
+
 @dataclass(frozen=True)
 class ModbusSettings:
     """How a Modbus drive is reached, and what the station assumes about its timing."""
 
-    link: ModbusLink = ModbusLink.TCP
-    host: str = "127.0.0.1"
-    port: int = DEFAULT_TCP_PORT
-    device: str = ""
-    baudrate: int = RTU_BAUDRATE
-    parity: str = RTU_PARITY
-    unit: int = DEFAULT_UNIT_ID
-    timeout_s: float = 0.5
-    guard_s: float = DEFAULT_GUARD_S
-    acceleration: float = DEFAULT_DRIVE_ACCELERATION
-
-    def endpoint(self, *, host: str | None = None, port: int | None = None,
-                 device: str | None = None) -> ModbusEndpoint:
-        return ModbusEndpoint(self.link, host or self.host, port or self.port,
-                              device or self.device, self.baudrate, self.parity, self.unit,
-                              self.timeout_s)
-
-    @property
-    def timing(self) -> CommandTiming:
-        return CommandTiming(self.guard_s, self.acceleration)
+    endpoint: ModbusEndpoint = DEFAULT_ENDPOINT
+    timing: CommandTiming = DEFAULT_TIMING
 
 
 @dataclass(frozen=True)
@@ -227,24 +211,26 @@ def _modbus(table: TomlTable | None, *, simulated: bool) -> ModbusSettings | Non
     if table is None:
         return None
     base = ModbusSettings()
-    link = table.choice("link", ModbusLink) if table.has("link") else ModbusLink.TCP
-    host = table.string("host", nonempty=True) if table.has("host") else base.host
-    port = table.integer("port", 1, 65535) if table.has("port") else base.port
-    device = table.string("device", nonempty=True) if table.has("device") else ""
-    baudrate = table.integer("baudrate", 1200, 921600) if table.has("baudrate") else base.baudrate
-    parity = table.string("parity") if table.has("parity") else base.parity
+    at, timing = base.endpoint, base.timing
+    link = table.choice("link", ModbusLink) if table.has("link") else at.link
+    host = table.string("host", nonempty=True) if table.has("host") else at.host
+    port = table.integer("port", 1, 65535) if table.has("port") else at.port
+    device = table.string("device", nonempty=True) if table.has("device") else at.device
+    baudrate = table.integer("baudrate", 1200, 921600) if table.has("baudrate") else at.baudrate
+    parity = table.string("parity") if table.has("parity") else at.parity
     if table.valid("parity") and parity not in ("N", "E", "O"):
         table.problem("parity", f"must be N, E or O, got {parity!r}")
-    unit = table.integer("unit", 1, 247, note="Modbus unit IDs") if table.has("unit") else base.unit
-    timeout = table.real("timeout_s", gt=0, le=10) if table.has("timeout_s") else base.timeout_s
-    guard = table.real("guard_s", ge=0, le=1) if table.has("guard_s") else base.guard_s
+    unit = table.integer("unit", 1, 247, note="Modbus unit IDs") if table.has("unit") else at.unit
+    timeout = table.real("timeout_s", gt=0, le=10) if table.has("timeout_s") else at.timeout_s
+    guard = table.real("guard_s", ge=0, le=1) if table.has("guard_s") else timing.guard_s
     acceleration = (table.real("acceleration", gt=0) if table.has("acceleration")
-                    else base.acceleration)
+                    else timing.acceleration)
     if link is ModbusLink.RTU and not device and not simulated:
         table.problem("device", "missing: an RTU link needs its serial device (e.g. /dev/ttyUSB0)")
     table.finish()
-    return ModbusSettings(link or ModbusLink.TCP, host, port, device, baudrate, parity, unit,
-                          timeout, guard, acceleration)
+    endpoint = ModbusEndpoint(link or at.link, host, port, device, baudrate, parity, unit,
+                              timeout)
+    return ModbusSettings(endpoint, CommandTiming(guard, acceleration))
 
 
 def _node(table: TomlTable | None, key: str, default: int) -> int:
@@ -401,17 +387,17 @@ def _open_drive(spec: BenchSpec, network: canopen.Network, sim_bench: SimBench |
     """The drive role over the bench's transport (a simulated Modbus drive: its own server)."""
     if spec.transport is Transport.CANOPEN:
         return CanopenDrive(network, spec.drive_node)
-    settings = spec.modbus or ModbusSettings()
+    endpoint = (spec.modbus or ModbusSettings()).endpoint
     if sim_bench is None:
-        return ModbusDrive(settings.endpoint())
+        return ModbusDrive(endpoint)
     server = sim_bench.modbus
     if server is None:
         raise DeviceError(spec.name, "the simulated bench started no Modbus server")
-    if settings.link is ModbusLink.TCP:
+    if endpoint.link is ModbusLink.TCP:
         host, port = server.tcp_address
-        return ModbusDrive(settings.endpoint(host=host, port=port))
+        return ModbusDrive(replace(endpoint, host=host, port=port))
     # A pseudo-terminal refuses parity settings; the simulated line is 8N1.
-    return ModbusDrive(replace(settings.endpoint(device=server.serial_port), parity=PTY_PARITY))
+    return ModbusDrive(replace(endpoint, device=server.serial_port, parity=PTY_PARITY))
 
 
 @contextmanager
@@ -436,8 +422,9 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
                 sensor_node=spec.sensor_node,
                 sync_period_s=spec.sync_period_s,
                 noise_density_ug=settings.noise_ug,
-                drive_link=spec.modbus.link if spec.modbus is not None else None,
-                modbus_unit=spec.modbus.unit if spec.modbus is not None else DEFAULT_UNIT_ID,
+                drive_link=spec.modbus.endpoint.link if spec.modbus is not None else None,
+                modbus_unit=(spec.modbus.endpoint.unit if spec.modbus is not None
+                             else DEFAULT_UNIT_ID),
             )))
             bus = BusConfig(interface=VIRTUAL_INTERFACE, channel=channel,
                             options={_RECEIVE_OWN: True})

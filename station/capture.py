@@ -86,6 +86,7 @@ class FrameCapture(can.Listener):
             start = since * PAYLOAD_BYTES
             payloads = np.frombuffer(bytes(self._payloads[start:]), dtype=np.uint8)
             malformed = self._malformed
+            syncs_total = self._syncs
         syncs = np.flatnonzero(kinds == FrameKind.SYNC)
         if syncs.size == 0:
             raise DeviceError("bus", "no SYNC frame was seen: the bench produced no samples")
@@ -98,9 +99,7 @@ class FrameCapture(can.Listener):
         )
         if commands is None:
             return timeline
-        with self._lock:
-            before = int(np.count_nonzero(
-                np.frombuffer(bytes(self._kinds[: since + first]), dtype=np.uint8)
-                == FrameKind.SYNC))
+        # The log counts samples from the capture's first SYNC; this stretch starts later.
+        before = syncs_total - int(syncs.size)
         return commanded_timeline(timeline, commands.entries(), commands.timing,
                                   first_sample=before)

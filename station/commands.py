@@ -29,11 +29,6 @@ from station.errors import StationError
 _log = logging.getLogger(__name__)
 
 
-def _ints(trims: Trims) -> tuple[int, int, int, int]:
-    t = trims.rounded()
-    return int(t.offset_a_mA), int(t.offset_b_mA), int(t.gain_a), int(t.gain_b)
-
-
 class CommandLog:
     """Every state the station put the drive in, stamped in samples (SYNCs seen)."""
 
@@ -67,7 +62,7 @@ class LoggedDrive(Drive):
         self._closed = False
         # What the drive holds before the station writes anything: its own trims, at rest.
         self._state = Commanded(sent=0, acknowledged=0, enabled=False, velocity=0,
-                                amplitude_mA=0, trims=_ints(inner.read_trims()))
+                                amplitude_mA=0, trims=inner.read_trims().integers())
 
     def _logged(self, write: Callable[[], None], **changes: Any) -> None:
         sent = self.log.samples_seen()
@@ -91,12 +86,12 @@ class LoggedDrive(Drive):
         self._logged(lambda: self.inner.set_amplitude(amplitude_mA), amplitude_mA=amplitude_mA)
 
     def write_trims(self, trims: Trims) -> None:
-        self._logged(lambda: self.inner.write_trims(trims), trims=_ints(trims))
+        self._logged(lambda: self.inner.write_trims(trims), trims=trims.integers())
 
     def reset(self) -> None:
         # A reset drive is de-energised and holds its stored trims, read back below.
         self._logged(self.inner.reset, enabled=False, velocity=0)
-        self._logged(lambda: None, trims=_ints(self.inner.read_trims()))
+        self._logged(lambda: None, trims=self.inner.read_trims().integers())
 
     # -- pass-through -------------------------------------------------------------------------
 

@@ -78,6 +78,11 @@ class Trims:
             float(round(self.gain_b)),
         )
 
+    def integers(self) -> tuple[int, int, int, int]:
+        """As the drive stores them: whole numbers, in 0x2100's order (offsets A, B, gains A, B)."""
+        t = self.rounded()
+        return int(t.offset_a_mA), int(t.offset_b_mA), int(t.gain_a), int(t.gain_b)
+
     def as_dict(self) -> dict[str, float]:
         """The JSON object CLI.md prescribes for trims."""
         return {k: float(v) for k, v in asdict(self).items()}

@@ -424,14 +424,7 @@ class _Calibration:
             fit, warnings = fit_parabola([m.point() for m in measured], axis)
             self.run_record.warnings.extend(warnings)
             fits.append(fit)
-        a, b, g = fits
-        trims = with_split(Trims(a.vertex, b.vertex, GAIN_UNITY, GAIN_UNITY), g.vertex)
-        return TrimEstimate(
-            method=Method.PAPER,
-            trims=trims,
-            sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
-            parabolas=(a, b, g),
-        )
+        return _from_vertices(fits)
 
     def _magnitude(self, motion: Motion, sweep: MagnitudeSweep, centre: Trims) -> TrimEstimate:
         """The paper's parabolas, round after round around the latest vertices.
@@ -455,14 +448,7 @@ class _Calibration:
                     self.run_record.warnings.extend(warnings)
                 fits.append(fit)
                 centre = within_drive_range(_at_vertex(centre, fit), rated)
-        a, b, g = fits
-        trims = with_split(Trims(a.vertex, b.vertex, GAIN_UNITY, GAIN_UNITY), g.vertex)
-        return TrimEstimate(
-            method=Method.PAPER,
-            trims=trims,
-            sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
-            parabolas=(a, b, g),
-        )
+        return _from_vertices(fits)
 
     def _coherent(self, motion: Motion, sweep: CoherentSweep, centre: Trims,
                   baseline: list[Measured]) -> TrimEstimate:
@@ -548,6 +534,18 @@ class _Calibration:
             )
         )
         drive.store()
+
+
+def _from_vertices(fits: Sequence[ParabolaFit]) -> TrimEstimate:
+    """The paper's estimate from its three parabolas, in ``_PAPER_ORDER``."""
+    a, b, g = fits
+    trims = with_split(Trims(a.vertex, b.vertex, GAIN_UNITY, GAIN_UNITY), g.vertex)
+    return TrimEstimate(
+        method=Method.PAPER,
+        trims=trims,
+        sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
+        parabolas=(a, b, g),
+    )
 
 
 def _at_vertex(centre: Trims, fit: ParabolaFit) -> Trims:

@@ -167,7 +167,7 @@ def test_a_modbus_bench_file_names_its_link_and_timing() -> None:
                        source="line3.toml")
     assert spec.transport is Transport.MODBUS and not spec.sees_drive_angle
     assert spec.modbus is not None
-    endpoint = spec.modbus.endpoint()
+    endpoint = spec.modbus.endpoint
     assert (endpoint.link, endpoint.host, endpoint.port, endpoint.unit) == (
         ModbusLink.TCP, "192.168.0.20", 1502, 3)
     assert spec.modbus.timing.guard_s == 0.05
@@ -199,7 +199,7 @@ def test_a_modbus_table_on_a_canopen_bench_is_refused() -> None:
 def test_sim_modbus_is_the_simulated_bench_with_a_modbus_drive() -> None:
     spec = load_bench(SIM_MODBUS_BENCH)
     assert spec.simulated and spec.transport is Transport.MODBUS
-    assert spec.modbus is not None and spec.modbus.link is ModbusLink.TCP
+    assert spec.modbus is not None and spec.modbus.endpoint.link is ModbusLink.TCP
 
 
 def test_an_unknown_transport_names_the_choices() -> None:
