@@ -23,6 +23,8 @@ DEFAULT_ORDERS = 8
 through the holes lost samples leave."""
 
 _MIN_PERIODS_FOR_SCATTER = 4
+_RAYLEIGH_Z = 9.0
+"""n·R̄² above which period-to-period turns have a direction (chance about e⁻⁹ ≈ 1e-4)."""
 
 
 @dataclass(frozen=True)
@@ -127,21 +129,34 @@ def demodulate(
 def phase_drift(
     per_period: NDArray[np.complex128], orders: Sequence[int]
 ) -> tuple[float, float]:
-    """Relative frequency error seen in per-period phasors, and its weight.
+    """Relative frequency error seen in per-period phasors, and its standard error.
 
     Demodulated at f while the signal runs at f·(1 + δ), the order-k phasor
-    turns by 2πkδ per period. The lag-one product of consecutive periods
-    measures that turn with the strong periods counting most; each order's
-    estimate is weighted by |product|·k², the inverse of its variance up to
-    a common factor. Returns (δ, weight); weight 0 when nothing turned up.
+    turns by 2πkδ per period. Each order's turn is the angle of the summed
+    lag-one products (strong periods count most), its standard error the
+    scatter of the single turns around it; orders are pooled by inverse
+    variance. A phasor that is only noise turns at random: an order whose turns
+    show no preferred direction (Rayleigh's test) is left out, and callers must
+    not correct a speed by a drift they cannot tell from zero. Returns (δ, σ);
+    σ is infinite when nothing could be measured.
     """
-    if per_period.shape[0] < 2:
-        return 0.0, 0.0
-    estimate, weight = 0.0, 0.0
+    estimate, information = 0.0, 0.0
     for j, k in enumerate(orders):
-        lag = complex(np.sum(per_period[1:, j] * np.conj(per_period[:-1, j])))
-        w = abs(lag) * k * k
-        if w > 0:
-            estimate += w * (math.atan2(lag.imag, lag.real) / (2 * math.pi * k))
-            weight += w
-    return (estimate / weight, weight) if weight > 0 else (0.0, 0.0)
+        lags = per_period[1:, j] * np.conj(per_period[:-1, j])
+        total = complex(np.sum(lags))
+        if lags.size < 2 or total == 0:
+            continue
+        # How consistently the periods turn one way: about 1/√n for noise, near 1 for a tone.
+        resultant = abs(total) / float(np.sum(np.abs(lags)))
+        if lags.size * resultant**2 <= _RAYLEIGH_Z:
+            continue  # Rayleigh's test: no preferred turn, this order says nothing
+        turn = math.atan2(total.imag, total.real)
+        # Circular standard deviation of one turn, then of their mean.
+        error = math.sqrt(-2.0 * math.log(min(resultant, 1.0))) / math.sqrt(lags.size)
+        scale = 2 * math.pi * k
+        variance = max(error / scale, 1e-12) ** 2
+        estimate += (turn / scale) / variance
+        information += 1.0 / variance
+    if information == 0.0:
+        return 0.0, math.inf
+    return estimate / information, 1.0 / math.sqrt(information)

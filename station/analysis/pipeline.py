@@ -7,6 +7,7 @@ capture) produced and returns numbers, so every step can be tested on arrays.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -144,6 +145,8 @@ def measure(
 
 
 _DRIFT_ORDERS = (1, 2)
+_DRIFT_SIGNIFICANCE = 3.0
+"""Standard errors a pooled speed error must exceed before the command is corrected."""
 
 
 def speed_errors(segments: Sequence[Segment], signal: NDArray[np.float64]) -> list[float]:
@@ -160,7 +163,7 @@ def speed_errors(segments: Sequence[Segment], signal: NDArray[np.float64]) -> li
         window = signal[seg.start : seg.stop]
         present = ~np.isnan(window)
         if not present.any():
-            drifts.append((0.0, 0.0))
+            drifts.append((0.0, math.inf))
             continue
         centred = np.where(present, window - np.mean(window[present]), 0.0)
         spp = 4 * seg.microsteps_per_fullstep / abs(seg.microsteps_per_sample)
@@ -168,13 +171,21 @@ def speed_errors(segments: Sequence[Segment], signal: NDArray[np.float64]) -> li
         drifts.append(phase_drift(z, _DRIFT_ORDERS))
     out: list[float] = []
     for seg in segments:
-        same = [d for other, d in zip(segments, drifts, strict=True)
+        same = [(d, sigma) for other, (d, sigma) in zip(segments, drifts, strict=True)
                 if abs(other.microsteps_per_sample - seg.microsteps_per_sample)
-                <= SAME_SPEED * abs(seg.microsteps_per_sample)]
-        weight = sum(w for _, w in same)
+                <= SAME_SPEED * abs(seg.microsteps_per_sample) and math.isfinite(sigma)]
+        information = sum(1.0 / sigma**2 for _, sigma in same)
+        if information == 0.0:
+            out.append(0.0)
+            continue
+        pooled = sum(d / sigma**2 for d, sigma in same) / information
+        # A drift the data cannot tell from zero leaves the command as it is: near the
+        # null the phasors are mostly noise, and "correcting" by noise moves the speed.
+        if abs(pooled) <= _DRIFT_SIGNIFICANCE / math.sqrt(information):
+            out.append(0.0)
+            continue
         # The drift is measured against the segment's own direction of rotation.
-        sign = 1.0 if seg.microsteps_per_sample > 0 else -1.0
-        out.append(sign * sum(d * w for d, w in same) / weight if weight > 0 else 0.0)
+        out.append(pooled if seg.microsteps_per_sample > 0 else -pooled)
     return out
 
 

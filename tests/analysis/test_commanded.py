@@ -117,9 +117,33 @@ def test_phase_drift_measures_how_far_the_true_frequency_is_from_the_assumed(del
     truth = assumed * (1 + delta)
     signal = 0.3 * np.cos(truth + 0.4) + 0.1 * np.cos(2 * truth - 1.0)
     z = period_phasors(signal, np.ones(n.size, dtype=bool), assumed, spp, (1, 2))
-    measured, weight = phase_drift(z, (1, 2))
-    assert weight > 0
+    measured, sigma = phase_drift(z, (1, 2))
+    assert sigma < 1e-5
     assert measured == pytest.approx(delta, abs=2e-5)
+
+
+def test_a_drift_of_pure_noise_is_reported_as_indistinguishable_from_zero() -> None:
+    spp = 50.0
+    n = np.arange(int(20 * spp))
+    assumed = (2 * math.pi / spp) * n.astype(np.float64)
+    noise = np.random.default_rng(7).standard_normal(n.size)
+    z = period_phasors(noise, np.ones(n.size, dtype=bool), assumed, spp, (1, 2))
+    measured, sigma = phase_drift(z, (1, 2))
+    assert abs(measured) < 3 * sigma
+
+
+def test_a_lone_segment_at_the_null_keeps_the_commanded_speed() -> None:
+    """The verification hold after trimming is mostly noise: its speed must not move."""
+    velocity, samples = 20480, 2000
+    commands = [_command(0, velocity=velocity)]
+    noise = 0.003 * np.random.default_rng(11).standard_normal(samples)
+    counts = np.round(noise / icd_metadata().sensor_lsb_mps2).astype(np.int16)
+    timing = CommandTiming(guard_s=0.01, acceleration=200_000)
+    timeline = commanded_timeline(_sensor_only_timeline(samples, counts), commands, timing)
+    measured, _ = measure(timeline, AnalysisOptions(settle_periods=4))
+    assert len(measured) == 1
+    # The line fitted through whole microsteps, not a "correction" (noise gave 18.08 Hz).
+    assert measured[0].segment.electrical_hz(PERIOD_S) == pytest.approx(20.0, rel=1e-6)
 
 
 def test_magnitudes_survive_a_drive_clock_off_by_a_percent() -> None:
