@@ -20,6 +20,16 @@ import numpy.typing as npt
 from station.core import Trims
 from station.errors import InputError
 
+LIVENESS_TIMEOUT_S = 1.0
+"""How long a device may say nothing before it counts as gone: ten of ICD.md's 100 ms
+heartbeats. Longer than CiA 301's usual 1.5 periods, because a false alarm scraps a
+good unit's run, while a second more of a dead node costs nothing: the drive stops
+by itself when it loses communication."""
+REQUEST_RETRIES = 2
+"""An unanswered request (SDO, Modbus) is sent again this often, and logged. Safe for
+every object the station writes: each holds an absolute value (trims, set-points, a
+controlword command, the 'save' signature), so repeating a request the device did
+act on, whose answer was lost, changes nothing; none is a counter or a toggle."""
 
 class DriveState(Enum):
     """CiA 402 power state machine states, decoded from the statusword."""
@@ -169,6 +179,14 @@ class Drive(ABC):
         """
         return None
 
+    def check_alive(self) -> None:
+        """Raise a station error if the drive fell silent or restarted by itself.
+
+        Cheap (no bus request): the clock calls it many times a second while
+        it runs, so a dead drive stops the run at once.
+        """
+        return None
+
     @abstractmethod
     def read_calibration_record(self) -> CalibrationRecord: ...
 
@@ -216,6 +234,10 @@ class AccelerationSensor(ABC):
     @abstractmethod
     def stop_capture(self) -> SensorCapture:
         """Stop keeping samples and return those kept since ``start_capture``."""
+
+    def check_alive(self) -> None:
+        """Raise a station error if the sensor fell silent or restarted (no bus request)."""
+        return None
 
     @abstractmethod
     def close(self) -> None:

@@ -20,19 +20,21 @@ import struct
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from enum import IntFlag
 from types import MappingProxyType, TracebackType
-from typing import Any, Self
+from typing import Any, Self, TypeVar
 
 import can
 import canopen
 from canopen.objectdictionary import ObjectDictionaryError, ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from drivers.base import DeviceIdentity
+from drivers.base import REQUEST_RETRIES, DeviceIdentity
 from drivers.cia301 import (
+    ABORT_MEANINGS,
     NMT_COB_ID,
     SYNC_COB_ID,
     TPDO1_COB_BASE,
@@ -40,9 +42,17 @@ from drivers.cia301 import (
     NmtCommand,
     NmtState,
 )
-from station.errors import DeviceError, DeviceTimeout, InputError, SdoAbort
+from station.errors import (
+    BusFault,
+    DeviceError,
+    DeviceRebooted,
+    DeviceTimeout,
+    InputError,
+    SdoAbort,
+)
 
 log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 
 VIRTUAL_INTERFACE = "virtual"
 """python-can's in-process bus: the only interface the simulated bench uses."""
@@ -58,6 +68,7 @@ SYNC_COUNTER_OVERFLOW = 240
 DEFAULT_SYNC_PERIOD_S = 0.001
 DEFAULT_SYNC_TIMEOUT_S = 0.5
 DEFAULT_MAX_MISSING_CYCLES = 20
+_SUPERVISE_SLICE_S = 0.1
 
 
 _RESERVED_BUS_KEYS = frozenset({"interface", "channel", "bitrate"})
@@ -197,8 +208,91 @@ def bench_tpdo_cob_ids(
     }
 
 
+class ErrorClass(IntFlag):
+    """SocketCAN's error classes (linux/can/error.h), carried in an error frame's ID."""
+
+    TX_TIMEOUT = 0x001
+    LOST_ARBITRATION = 0x002
+    CONTROLLER = 0x004
+    PROTOCOL = 0x008
+    TRANSCEIVER = 0x010
+    NO_ACK = 0x020
+    BUS_OFF = 0x040
+    BUS_ERROR = 0x080
+    RESTARTED = 0x100
+
+
+class ControllerProblem(IntFlag):
+    """Data byte 1 of a CONTROLLER error frame."""
+
+    RX_OVERFLOW = 0x01
+    TX_OVERFLOW = 0x02
+    RX_WARNING = 0x04
+    TX_WARNING = 0x08
+    RX_PASSIVE = 0x10
+    TX_PASSIVE = 0x20
+    ACTIVE = 0x40
+
+
+class BusMonitor(can.Listener):
+    """What the interface says about the bus itself: error frames, error-passive, bus-off.
+
+    canopen drops error frames before any callback sees them, so the station
+    listens for them itself. Error frames alone cost nothing but retransmissions
+    (CAN's CRC and automatic repeat keep the data sound; a frame that is lost
+    anyway leaves a hole the analysis sees), so they are counted and reported.
+    Bus-off is different: the controller has left the bus, and every frame the
+    station believed sent may be gone; ``check`` then raises ``BusFault``.
+    """
+
+    def __init__(self, bus_name: str) -> None:
+        self._bus_name = bus_name
+        self._lock = threading.Lock()
+        self.error_frames = 0
+        self.passive = False
+        self._bus_off = False
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if not msg.is_error_frame:
+            return
+        classes = ErrorClass(msg.arbitration_id & 0x1FF)
+        problems = ControllerProblem(msg.data[1]) if len(msg.data) > 1 else ControllerProblem(0)
+        with self._lock:
+            self.error_frames += 1
+            if classes & ErrorClass.BUS_OFF:
+                self._bus_off = True
+            if classes & ErrorClass.CONTROLLER and problems & (
+                ControllerProblem.RX_PASSIVE | ControllerProblem.TX_PASSIVE
+            ):
+                self.passive = True
+        if classes & ErrorClass.BUS_OFF:
+            log.error("%s: the CAN controller reports bus-off", self._bus_name)
+
+    def check(self) -> None:
+        with self._lock:
+            bus_off, count = self._bus_off, self.error_frames
+        if bus_off:
+            raise BusFault(self._bus_name, f"bus-off after {count} error frames: frames sent "
+                           "since may be lost; check termination, wiring and bit rate")
+
+
 class SyncClock(ABC):
-    """The station's SYNC producer: the time base of every sample on the bench."""
+    """The station's SYNC producer: the time base of every sample on the bench.
+
+    A supervisor (``supervise``) is called while the clock runs, at least every
+    0.1 s of waiting and after every ``advance``, so a silent device, a reboot or
+    a bus-off stops a run within moments instead of after its timeouts.
+    """
+
+    _supervisor: Callable[[], None] | None = None
+
+    def supervise(self, check: Callable[[], None] | None) -> None:
+        """Call ``check`` (which raises to stop the run) while the clock runs."""
+        self._supervisor = check
+
+    def _supervise(self) -> None:
+        if self._supervisor is not None:
+            self._supervisor()
 
     @property
     @abstractmethod
@@ -415,9 +509,11 @@ class SteppedSync(SyncClock):
                 self._send(frame)
             frames = []
             if self._await_batch():
+                self._supervise()
                 return
             # Stalled: a frame did not come within the timeout.
             self._check_receiver()
+            self._supervise()
             self._account_for_missing()
             with self._lock:
                 if self._sent >= self._target:
@@ -552,9 +648,10 @@ class PeriodicSync(SyncClock):
             raise DeviceError(SYNC_PRODUCER, "the SYNC clock is closed")
         target = self.cycles + cycles
         deadline = self._started + (target - 1) * self._period_s
-        remaining = deadline - time.perf_counter()
-        if remaining > 0:
-            time.sleep(remaining)
+        while (remaining := deadline - time.perf_counter()) > 0:
+            time.sleep(min(remaining, _SUPERVISE_SLICE_S))
+            self._supervise()
+        self._supervise()
 
     def close(self) -> None:
         if self._closed:
@@ -578,6 +675,7 @@ class HeartbeatWatch:
         self._last: float | None = None
         self._seq = 0
         self._seen_at: dict[int, int] = {}
+        self._boots = 0
         node.nmt.add_heartbeat_callback(self._on_heartbeat)
 
     def _on_heartbeat(self, state: int) -> None:
@@ -585,7 +683,35 @@ class HeartbeatWatch:
             self._last = time.monotonic()
             self._seq += 1
             self._seen_at[state] = self._seq
+            if state == NmtState.BOOT_UP:
+                self._boots += 1
             self._cond.notify_all()
+
+    @property
+    def boots(self) -> int:
+        """Boot-up frames seen: one more than expected means the node restarted by itself."""
+        with self._cond:
+            return self._boots
+
+    def check(self, device: str, *, max_age_s: float, boots_expected: int) -> None:
+        """Raise if the node fell silent or booted behind the station's back.
+
+        Heartbeats are the bus's own liveness signal (ICD.md §1: every 100 ms);
+        a boot-up frame the station did not cause is a power cycle or a
+        watchdog reset, after which the node's RAM (trims under test, power
+        state) is gone.
+        """
+        with self._cond:
+            last, boots = self._last, self._boots
+        if boots > boots_expected:
+            raise DeviceRebooted(device, "sent a boot-up frame mid-run (power cycle or reset "
+                                 "by itself): its RAM, trims under test included, is gone")
+        if last is None:
+            raise DeviceTimeout(device, "no heartbeat ever seen")
+        age = time.monotonic() - last
+        if age > max_age_s:
+            raise DeviceTimeout(device, f"silent: last heartbeat {age:.2f} s ago "
+                                f"(heartbeat consumer time {max_age_s} s)")
 
     @property
     def sequence(self) -> int:
@@ -650,7 +776,8 @@ class SdoChannel:
         try:
             yield
         except SdoAbortedError as exc:
-            raise SdoAbort(self._device, index, subindex, exc.code) from exc
+            raise SdoAbort(self._device, index, subindex, exc.code,
+                           ABORT_MEANINGS.get(exc.code, "")) from exc
         except SdoCommunicationError as exc:
             raise DeviceTimeout(self._device, f"{where}: {exc}") from exc
         except ObjectDictionaryError as exc:
@@ -661,10 +788,31 @@ class SdoChannel:
             # canopen's way of saying the node or network is no longer connected.
             raise DeviceError(self._device, f"{where}: not connected ({exc})") from exc
 
+    def _retried(self, index: int, subindex: int, transfer: Callable[[], _T]) -> _T:
+        """``transfer``, sent again (bounded by ``REQUEST_RETRIES``, logged) when unanswered.
+
+        Only timeouts are retried: an abort is the device's answer, and asking
+        again would only hear it again.
+        """
+        for attempt in range(REQUEST_RETRIES + 1):
+            try:
+                with self._errors(index, subindex):
+                    return transfer()
+            except DeviceTimeout as exc:
+                if attempt == REQUEST_RETRIES:
+                    raise DeviceTimeout(
+                        self._device, f"{self._where(index, subindex)}: no answer to "
+                        f"{REQUEST_RETRIES + 1} attempts ({exc})") from exc
+                log.warning("%s: %s unanswered, sending it again (retry %d of %d)",
+                            self._device, self._where(index, subindex), attempt + 1,
+                            REQUEST_RETRIES)
+        raise AssertionError("unreachable")
+
     def read(self, index: int, subindex: int = 0) -> int | float:
         variable = self._variable(index, subindex)
+        raw = self._retried(index, subindex, lambda: self._node.sdo.upload(index, subindex))
         with self._errors(index, subindex):
-            value = variable.decode_raw(self._node.sdo.upload(index, subindex))
+            value = variable.decode_raw(raw)
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise DeviceError(
                 self._device, f"{self._where(index, subindex)} is not a number: {value!r}"
@@ -695,8 +843,7 @@ class SdoChannel:
 
     def write(self, index: int, subindex: int, value: int | float) -> None:
         data = self._encode(index, subindex, value)
-        with self._errors(index, subindex):
-            self._node.sdo.download(index, subindex, data)
+        self._retried(index, subindex, lambda: self._node.sdo.download(index, subindex, data))
 
     def identity(self) -> DeviceIdentity:
         """CiA 301 identity object 0x1018:01..04."""

@@ -18,7 +18,7 @@ from enum import IntEnum
 
 import canopen
 
-from drivers.base import CalibrationRecord, DeviceIdentity, Drive, DriveState
+from drivers.base import LIVENESS_TIMEOUT_S, CalibrationRecord, DeviceIdentity, Drive, DriveState
 from drivers.canbus import (
     HeartbeatWatch,
     SdoChannel,
@@ -125,6 +125,8 @@ class CanopenDrive(Drive):
                     f"not a stepper drive (0x{STEPPER_DRIVE_DEVICE_TYPE:08X})",
                 )
             start_node(network, node_id, self._heartbeat, name, timeout_s=nmt_timeout_s)
+            # Boot-ups from here on are the station's own resets, or a fault.
+            self._boots_expected = self._heartbeat.boots
         except BaseException:
             detach_remote_node(network, self._node)
             raise
@@ -248,6 +250,7 @@ class CanopenDrive(Drive):
             NmtState.BOOT_UP, after=seen, timeout_s=self._reset_timeout_s
         ):
             raise DeviceTimeout(self.name, f"no boot-up within {self._reset_timeout_s} s of reset")
+        self._boots_expected = self._heartbeat.boots
         start_node(
             self._network, self._node_id, self._heartbeat, self.name, timeout_s=self._nmt_timeout_s
         )
@@ -280,12 +283,10 @@ class CanopenDrive(Drive):
         """Seconds since the drive's last heartbeat; ``None`` before the first one."""
         return self._heartbeat.age_s()
 
-    def check_alive(self, max_age_s: float = 0.35) -> None:
-        """Raise ``DeviceTimeout`` unless a heartbeat came within ``max_age_s``."""
-        age = self._heartbeat.age_s()
-        if age is None or age > max_age_s:
-            seen = "never" if age is None else f"{age:.3f} s ago"
-            raise DeviceTimeout(self.name, f"last heartbeat {seen} (limit {max_age_s} s)")
+    def check_alive(self, max_age_s: float = LIVENESS_TIMEOUT_S) -> None:
+        """Raise unless a heartbeat came within ``max_age_s`` and no unasked boot-up did."""
+        self._heartbeat.check(self.name, max_age_s=max_age_s,
+                              boots_expected=self._boots_expected)
 
     # -- teardown --------------------------------------------------------------
 

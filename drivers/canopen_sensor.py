@@ -18,7 +18,7 @@ import canopen
 import numpy as np
 import numpy.typing as npt
 
-from drivers.base import AccelerationSensor, DeviceIdentity, SensorCapture
+from drivers.base import LIVENESS_TIMEOUT_S, AccelerationSensor, DeviceIdentity, SensorCapture
 from drivers.canbus import (
     HeartbeatWatch,
     SdoChannel,
@@ -154,6 +154,7 @@ class CanopenSensor(AccelerationSensor):
             self._heartbeat = HeartbeatWatch(self._node)
             network.subscribe(self._cob_id, self._on_sample)
             start_node(network, node_id, self._heartbeat, name, timeout_s=nmt_timeout_s)
+            self._boots_expected = self._heartbeat.boots
         except BaseException:
             self._detach()
             raise
@@ -189,6 +190,11 @@ class CanopenSensor(AccelerationSensor):
 
     def heartbeat_age_s(self) -> float | None:
         return self._heartbeat.age_s()
+
+    def check_alive(self, max_age_s: float = LIVENESS_TIMEOUT_S) -> None:
+        """Raise if the node fell silent, or rebooted (its range is back to the default)."""
+        self._heartbeat.check(self.name, max_age_s=max_age_s,
+                              boots_expected=self._boots_expected)
 
     def _on_sample(self, can_id: int, data: bytearray, timestamp: float) -> None:
         # Notifier thread, once per SYNC: copy the payload and nothing else.

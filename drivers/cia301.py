@@ -49,3 +49,20 @@ class AbortCode(IntEnum):
     VALUE_RANGE = 0x06090030
     CANNOT_STORE = 0x08000020
     DEVICE_STATE = 0x08000022
+
+
+ABORT_MEANINGS = {
+    0x05040000: "SDO protocol timed out",
+    0x06010000: "unsupported access to an object",
+    0x06010001: "attempt to read a write-only object",
+    AbortCode.READ_ONLY: "attempt to write a read-only object",
+    0x06020000: "object does not exist in the object dictionary",
+    0x06070010: "data type does not match",
+    AbortCode.VALUE_RANGE: "value range of parameter exceeded",
+    0x06090011: "sub-index does not exist",
+    0x08000000: "general error",
+    AbortCode.CANNOT_STORE: "data cannot be transferred or stored",
+    0x08000021: "data cannot be stored because of local control",
+    AbortCode.DEVICE_STATE: "data cannot be transferred in the present device state",
+}
+"""CiA 301's names for the abort codes a technician is likely to meet."""

@@ -19,12 +19,20 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from dataclasses import dataclass
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException as PymodbusError
 
-from drivers.base import CalibrationRecord, DeviceIdentity, Drive, DriveState
+from drivers.base import (
+    LIVENESS_TIMEOUT_S,
+    REQUEST_RETRIES,
+    CalibrationRecord,
+    DeviceIdentity,
+    Drive,
+    DriveState,
+)
 from drivers.cia402 import StateMachine
 from drivers.modbus_map import (
     CALIBRATION_REGISTERS,
@@ -91,6 +99,7 @@ class ModbusDrive(Drive):
         self._closed = False
         self._expect_enabled = False
         self._left_enabled: str | None = None
+        self._last_answer = time.monotonic()
         client: ModbusTcpClient | ModbusSerialClient
         if endpoint.link is ModbusLink.TCP:
             client = ModbusTcpClient(endpoint.host, port=endpoint.port,
@@ -125,26 +134,41 @@ class ModbusDrive(Drive):
 
     def _request(self, function: ModbusFunction, address: int, *,
                  count: int = 0, values: list[int] | None = None) -> list[int]:
-        """One request under the lock; the answer's registers, or a station error."""
+        """One request under the lock; the answer's registers, or a station error.
+
+        An unanswered request is sent again (``REQUEST_RETRIES`` times, logged), for
+        the reason SDOs are: every register the station writes holds an absolute
+        value, so repeating a request the drive did act on changes nothing.
+        """
         with self._lock:
             if self._closed:
                 raise DeviceError(self.name, "the Modbus connection is closed")
             unit = self.endpoint.unit
-            try:
-                if function is ModbusFunction.READ_HOLDING_REGISTERS:
-                    response = self._client.read_holding_registers(address, count=count,
-                                                                   device_id=unit)
-                elif function is ModbusFunction.WRITE_SINGLE_REGISTER:
-                    assert values is not None and len(values) == 1
-                    response = self._client.write_register(address, values[0], device_id=unit)
-                else:
-                    assert values is not None
-                    response = self._client.write_registers(address, values, device_id=unit)
-            except PymodbusError as exc:
-                raise DeviceTimeout(
-                    self.name, f"no answer from {self._where(function, address)} within "
-                    f"{self.endpoint.timeout_s} s ({exc})"
-                ) from exc
+            for attempt in range(REQUEST_RETRIES + 1):
+                try:
+                    if function is ModbusFunction.READ_HOLDING_REGISTERS:
+                        response = self._client.read_holding_registers(address, count=count,
+                                                                       device_id=unit)
+                    elif function is ModbusFunction.WRITE_SINGLE_REGISTER:
+                        assert values is not None and len(values) == 1
+                        response = self._client.write_register(address, values[0],
+                                                               device_id=unit)
+                    else:
+                        assert values is not None
+                        response = self._client.write_registers(address, values,
+                                                                device_id=unit)
+                    break
+                except PymodbusError as exc:
+                    if attempt == REQUEST_RETRIES:
+                        raise DeviceTimeout(
+                            self.name, f"no answer from {self._where(function, address)} "
+                            f"to {REQUEST_RETRIES + 1} attempts of {self.endpoint.timeout_s} s "
+                            f"({exc})"
+                        ) from exc
+                    log.warning("%s: %s unanswered, sending it again (retry %d of %d)",
+                                self.name, self._where(function, address), attempt + 1,
+                                REQUEST_RETRIES)
+            self._last_answer = time.monotonic()
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
             if code == 0:
@@ -239,7 +263,16 @@ class ModbusDrive(Drive):
             state = self.state()
             if state is not DriveState.OPERATION_ENABLED:
                 self._expect_enabled = False
-                raise DeviceStateError(self.name, f"left operation enabled: now {state.value}")
+                raise DeviceStateError(self.name, f"left operation enabled by itself: now "
+                                       f"{state.value} (power cycle, watchdog or fault)")
+
+    def check_alive(self) -> None:
+        """What the keep-alive thread found: a drive that stopped, or stopped answering."""
+        self._raise_if_dropped()
+        quiet_s = time.monotonic() - self._last_answer  # no lock: a request may hang it
+        if quiet_s > max(LIVENESS_TIMEOUT_S, 5 * self._keep_alive_s):
+            raise DeviceTimeout(self.name, f"silent: no answer to the keep-alive for "
+                                f"{quiet_s:.2f} s ({self.endpoint.describe()})")
 
     def _raise_if_dropped(self) -> None:
         dropped, self._left_enabled = self._left_enabled, None
@@ -256,7 +289,8 @@ class ModbusDrive(Drive):
                 log.debug("%s: keep-alive read failed: %s", self.name, exc)
                 continue
             if self._expect_enabled and state is not DriveState.OPERATION_ENABLED:
-                self._left_enabled = f"left operation enabled by itself: now {state.value}"
+                self._left_enabled = (f"left operation enabled by itself: now {state.value} "
+                                     "(power cycle, watchdog or fault)")
                 log.warning("%s: %s", self.name, self._left_enabled)
 
     # -- set-points ------------------------------------------------------------

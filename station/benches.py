@@ -36,6 +36,7 @@ from drivers.canbus import (
     DEFAULT_SYNC_PERIOD_S,
     VIRTUAL_INTERFACE,
     BusConfig,
+    BusMonitor,
     PeriodicSync,
     SteppedSync,
     SyncClock,
@@ -56,6 +57,7 @@ from station.errors import DeviceError, InputError
 from station.recording import RecordingMetadata, SimulatedClock
 from station.serials import Serial, parse_serial
 from station.sim.bench import SimBench, SimBenchConfig
+from station.sim.faults import COUNTED_KINDS, Fault, FaultKind
 from station.tomltable import TomlTable, toml_error
 
 log = logging.getLogger(__name__)
@@ -99,6 +101,7 @@ class SimSettings:
     effects: frozenset[Effect] | None = None  # None: each unit's own concealed effects
     noise_ug: float | None = None  # sensor noise density; None: the unit's own
     seed: int = 0
+    faults: tuple[Fault, ...] = ()  # injected, in simulated time since power-on
 
 
 DEFAULT_GUARD_S = 0.02
@@ -202,9 +205,26 @@ def _sim(table: TomlTable | None) -> SimSettings | None:
         effects = frozenset(Effect(n) for n in names if n not in unknown)
     noise = table.real("noise_ug", ge=0) if table.has("noise_ug") else None
     seed = table.integer("seed", 0) if table.has("seed") else 0
+    faults = tuple(_fault(entry) for entry in table.table_array("faults")
+                   ) if table.has("faults") else ()
     table.finish()
     return SimSettings(load=load or LoadKind.DISK, unit=unit, effects=effects, noise_ug=noise,
-                       seed=seed)
+                       seed=seed, faults=tuple(f for f in faults if f is not None))
+
+
+def _fault(table: TomlTable) -> Fault | None:
+    """``[[sim.faults]]``: kind, at_s (simulated seconds after power-on), count."""
+    kind = table.choice("kind", FaultKind)
+    at_s = table.real("at_s", ge=0, le=3600) if table.has("at_s") else 0.0
+    count = 1
+    if table.has("count"):
+        count = table.integer("count", 1, 10_000)
+        if kind is not None and kind not in COUNTED_KINDS:
+            table.problem("count", f"means nothing for {kind.value}: it happens once and lasts")
+    table.finish()
+    if kind is None or not table.valid("at_s", "count"):
+        return None
+    return Fault(kind, at_s, count)
 
 
 def _modbus(table: TomlTable | None, *, simulated: bool) -> ModbusSettings | None:
@@ -326,7 +346,18 @@ class BenchSession:
     clock: SyncClock
     network: canopen.Network
     fixture: Fixture
+    bus_monitor: BusMonitor
     _listeners: list[can.Listener] = field(default_factory=list)
+
+    def supervise(self) -> None:
+        """Raise if the bus went off or a device fell silent or rebooted (no bus traffic).
+
+        The clock calls this while it runs, so a run stops within moments of
+        such a fault, before anything measured after it could be used.
+        """
+        self.bus_monitor.check()
+        self.drive.check_alive()
+        self.sensor.check_alive()
 
     @property
     def command_timing(self) -> CommandTiming | None:
@@ -425,6 +456,7 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
                 drive_link=spec.modbus.endpoint.link if spec.modbus is not None else None,
                 modbus_unit=(spec.modbus.endpoint.unit if spec.modbus is not None
                              else DEFAULT_UNIT_ID),
+                faults=settings.faults,
             )))
             bus = BusConfig(interface=VIRTUAL_INTERFACE, channel=channel,
                             options={_RECEIVE_OWN: True})
@@ -434,6 +466,9 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
             options = {_RECEIVE_OWN: True, **base.options}
             bus = BusConfig(base.interface, base.channel, base.bitrate, options)
         network = stack.enter_context(open_network(bus))
+        monitor = BusMonitor(bus.describe())
+        if network.notifier is not None:
+            network.notifier.add_listener(monitor)
         drive = stack.enter_context(_open_drive(spec, network, sim_bench))
         sensor = stack.enter_context(CanopenSensor(network, spec.sensor_node))
         clock: SyncClock
@@ -450,4 +485,6 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
         fixture = spec.fixture or (_sim_fixture(sim_bench) if sim_bench is not None else None)
         if fixture is None:
             raise BenchFileError(f"bench {spec.name}: no fixture geometry")
-        yield BenchSession(spec, drive, sensor, clock, network, fixture)
+        session = BenchSession(spec, drive, sensor, clock, network, fixture, monitor)
+        clock.supervise(session.supervise)
+        yield session

@@ -52,8 +52,11 @@ class DeviceTimeout(DeviceError):
 class SdoAbort(DeviceError):
     """The device refused an SDO transfer; ``code`` is the CiA 301 abort code."""
 
-    def __init__(self, device: str, index: int, subindex: int, code: int) -> None:
-        super().__init__(device, f"SDO 0x{index:04X}:{subindex:02X} aborted with 0x{code:08X}")
+    def __init__(self, device: str, index: int, subindex: int, code: int,
+                 meaning: str = "") -> None:
+        said = f" ({meaning})" if meaning else ""
+        super().__init__(device,
+                         f"SDO 0x{index:04X}:{subindex:02X} aborted with 0x{code:08X}{said}")
         self.index = index
         self.subindex = subindex
         self.code = code
@@ -63,8 +66,26 @@ class DeviceStateError(DeviceError):
     """The device is not in the state the procedure needs (e.g. CiA 402 fault)."""
 
 
+class DeviceRebooted(DeviceStateError):
+    """The device booted again mid-run (power cycle, watchdog): what it held in RAM is gone."""
+
+
+class BusFault(DeviceError):
+    """The CAN interface reported bus-off, or so many errors that no frame can be trusted."""
+
+
+class SensorFault(DeviceError):
+    """The sensor answers, but what it reports is not acceleration (clipped, stuck, unplugged)."""
+
+
 class IdentityMismatch(DeviceError):
-    """The unit on the bench is not the unit the operator named."""
+    """The unit on the bench is not the unit the operator named.
+
+    An operator's mistake, found by reading the drive only: nothing is recorded
+    and nothing written to the drive, so it is an input error (exit code 2).
+    """
+
+    exit_code = ExitCode.USAGE
 
 
 class ProductMismatch(DeviceError):
@@ -87,6 +108,16 @@ class DatabaseError(StationError):
     def __init__(self, database: str, message: str) -> None:
         super().__init__(f"database {database}: {message}")
         self.database = database
+
+
+class DatabasePathError(DatabaseError):
+    """The database path given cannot hold a database (unwritable, not a directory, ...).
+
+    The operator named it (``--db``, ``STATION_DB``), and it is refused before
+    anything runs, so it is an input error (exit code 2).
+    """
+
+    exit_code = ExitCode.USAGE
 
 
 class ModbusException(DeviceError):

@@ -23,7 +23,8 @@ from __future__ import annotations
 import hashlib
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
@@ -44,6 +45,7 @@ from station.analysis.estimate import (
 )
 from station.analysis.pipeline import AnalysisOptions, Measured, measure
 from station.analysis.report import fit_summary
+from station.analysis.timeline import Timeline
 from station.benches import BenchSession, BenchSpec, open_bench
 from station.capture import FrameCapture
 from station.commands import CommandLog, LoggedDrive
@@ -60,10 +62,13 @@ from station.designs import (
 )
 from station.errors import (
     DeviceError,
+    DeviceTimeout,
     IdentityMismatch,
     ProductMismatch,
     RecordingError,
     SelfCheckFailed,
+    SensorFault,
+    StationError,
 )
 from station.limits import (
     estimate_checks,
@@ -77,7 +82,7 @@ from station.recording import RecordingMetadata, RecordingWriter
 from station.runner import Motion
 from station.runs import LimitCheck, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for
-from station.selfcheck import sensor_self_check
+from station.selfcheck import sensor_in_motion_problems, sensor_self_check
 from station.serials import Serial, label_for
 
 log = logging.getLogger(__name__)
@@ -141,17 +146,33 @@ class NoMeasurement(DeviceError):
     """A hold produced no usable steady segment: the bench, not the unit, let us down."""
 
 
-def calibrate_unit(request: CalibrationRequest, run: Run, observer: Observer | None = None) -> None:
-    """Calibrate the unit, filling ``run``; raises a station error when the bench fails.
+@contextmanager
+def unit_on_bench(bench: BenchSpec, serial: Serial,
+                  observer: Observer | None = None) -> Iterator[BenchSession]:
+    """The bench, open, with the named unit on it: checked by reading only.
+
+    The wrong unit on the fixture is the operator's mistake, not the unit's:
+    it is refused (``IdentityMismatch``, exit code 2) before the station
+    records a run or writes anything to the drive.
+    """
+    shown = observer if observer is not None else Silent()
+    shown.step(Step.CONNECT, f"bench {bench.name}")
+    with open_bench(bench, serial) as session:
+        shown.step(Step.IDENTIFY, str(serial))
+        check_identity(session.drive, serial)
+        yield session
+
+
+def calibrate_unit(request: CalibrationRequest, run: Run, session: BenchSession,
+                   observer: Observer | None = None) -> None:
+    """Calibrate the unit on ``session``, filling ``run``; raises a station error when the
+    bench fails.
 
     On return ``run.verdict`` is PASS or FAIL and ``run.limits`` says why; on
     an exception the caller records ERROR (or ABORTED) with what ``run``
-    already holds.
+    already holds, and the drive holds the trims it was found with.
     """
-    shown = observer if observer is not None else Silent()
-    shown.step(Step.CONNECT, f"bench {request.bench.name}")
-    with open_bench(request.bench, request.serial) as session:
-        _Calibration(request, run, session, shown).run()
+    _Calibration(request, run, session, observer if observer is not None else Silent()).run()
 
 
 def check_identity(drive: Drive, serial: Serial) -> None:
@@ -189,6 +210,8 @@ class _Calibration:
         self.velocity = 0
         self.electrical_hz = self.recipe.motion.electrical_hz
         self.capture: FrameCapture | None = None
+        self.record_before: CalibrationRecord | None = None
+        self.eeprom_touched = False  # a store was sent: the EEPROM may differ from before
 
     # -- the whole run ------------------------------------------------------------------------
 
@@ -210,9 +233,47 @@ class _Calibration:
             with self.session.listening(writer, capture):
                 self._identify(metadata)
                 self._calibrate()
+        except BaseException:
+            self._restore()
+            raise
         finally:
             self.run_record.motion_s = (self.session.clock.cycles - start_cycles) * self.period_s
+            errors = self.session.bus_monitor.error_frames
+            if errors:
+                # Harmless by themselves (CAN resends), but a bus going bad shows here first.
+                self.run_record.warnings.append(f"{errors} CAN error frames during the run")
             self._publish(writer)
+
+    def _restore(self) -> None:
+        """Give the drive back its trims as found, after a run that did not finish.
+
+        Trims under test must not stay in its RAM, and a half-done calibration
+        must not stay in its EEPROM: if a store was sent, the previous trims and
+        calibration record are stored again. Best effort (the drive may be the
+        fault); what could not be restored is said in the run's warnings, and
+        ``trims_stored`` keeps saying what the EEPROM holds as far as known.
+        """
+        run, drive = self.run_record, self.session.drive
+        before = run.trims_before
+        if before is None:
+            return  # nothing was touched before the trims were even read
+        where = "RAM"
+        try:
+            drive.write_trims(before)
+            if self.eeprom_touched:
+                where = "EEPROM"
+                if self.record_before is not None:
+                    drive.write_calibration_record(self.record_before)
+                drive.store()
+                run.trims_stored, run.trims_after = False, None
+                run.warnings.append(f"{drive.name}: previous trims {_trims_text(before)} and "
+                                    "calibration record stored again (rolled back)")
+        except StationError as exc:
+            log.error("%s: could not restore the trims it was found with: %s", drive.name, exc)
+            run.warnings.append(
+                f"{drive.name}: could not restore its previous trims {_trims_text(before)} "
+                f"in its {where} ({exc}): verify the unit before it ships"
+            )
 
     def _publish(self, writer: RecordingWriter) -> None:
         """The recording is kept whatever happened: an error is exactly when it is needed."""
@@ -254,7 +315,6 @@ class _Calibration:
 
     def _identify(self, metadata: RecordingMetadata) -> None:
         """Refuse the wrong unit or the wrong product before anything moves."""
-        self.observer.step(Step.IDENTIFY, str(self.request.serial))
         drive, product = self.drive, self.recipe.product
         check_identity(drive, self.request.serial)
         microsteps = metadata.microsteps_per_fullstep
@@ -267,6 +327,7 @@ class _Calibration:
                 f"{product.rated_current_mA} mA)",
             )
         self.run_record.trims_before = drive.read_trims()
+        self.record_before = drive.read_calibration_record()
         self.velocity = velocity_for(self.recipe.motion.electrical_hz, microsteps)
         self.electrical_hz = self.velocity / (4.0 * microsteps)
 
@@ -346,6 +407,7 @@ class _Calibration:
         mark = self.capture.mark()
         motion.run(holds)
         timeline = self.capture.timeline(mark, self.commands)
+        self._check_sensor(timeline)
         measured, rejected = measure(
             timeline, AnalysisOptions(settle_periods=float(motion_spec.settle_periods))
         )
@@ -369,6 +431,17 @@ class _Calibration:
                 f"{phase.value}: point {_trims_text(point)} not measured ({reasons})"
             )
         return found
+
+    def _check_sensor(self, timeline: Timeline) -> None:
+        """Refuse holds whose samples are not acceleration (saturated, unplugged, stuck)."""
+        problems = sensor_in_motion_problems(
+            timeline.accel_counts[timeline.sensor_valid],
+            timeline.metadata.sensor_lsb_mps2,
+            gravity_axis=self.session.fixture.gravity_axis,
+            gravity_tolerance_mps2=self.recipe.self_check.gravity_tolerance_mps2,
+        )
+        if problems:
+            raise SensorFault(self.session.sensor.name, "; ".join(problems))
 
     def _sweeps(self, motion: Motion) -> TrimEstimate | None:
         """Baseline, then the recipe's sweeps; the estimate, or None after a FAIL."""
@@ -478,7 +551,7 @@ class _Calibration:
         self.observer.step(Step.WRITE, _trims_text(trims))
         drive.write_trims(trims)
         self.observer.step(Step.STORE, "0x1010:01 save")
-        drive.store()
+        self._store(drive)
         run.trims_stored = True
         run.trims_after = trims
         if drive.resettable:
@@ -498,6 +571,22 @@ class _Calibration:
                 f"read back, the drive holds {_trims_text(back)}, but "
                 f"{_trims_text(trims)} were written and stored: the EEPROM did not keep them",
             )
+
+    def _store(self, drive: Drive) -> None:
+        """Store, noting whether the EEPROM may now differ from how the unit came.
+
+        A refused store (an abort, a Modbus exception: the drive's own answer)
+        left the EEPROM as it was; an unanswered one may have acted.
+        """
+        touched = self.eeprom_touched
+        self.eeprom_touched = True
+        try:
+            drive.store()
+        except DeviceTimeout:
+            raise
+        except StationError:
+            self.eeprom_touched = touched
+            raise
 
     def _verify(self, trims: Trims) -> Ripple:
         """Measure the stored trims as the drive runs them after its reset."""
@@ -525,7 +614,8 @@ class _Calibration:
         """0x2101: when, where and how often; stored, so the unit carries its own history."""
         drive, run = self.drive, self.run_record
         self.observer.step(Step.RECORD, "0x2101 and store")
-        previous = drive.read_calibration_record()
+        previous = self.record_before
+        assert previous is not None  # read when the unit was identified
         drive.write_calibration_record(
             CalibrationRecord(
                 calibrated_at=int(time.time()),
@@ -533,7 +623,7 @@ class _Calibration:
                 count=min(previous.count + 1, _U16_MAX),
             )
         )
-        drive.store()
+        self._store(drive)
 
 
 def _from_vertices(fits: Sequence[ParabolaFit]) -> TrimEstimate:

@@ -100,3 +100,45 @@ def sensor_self_check(
         gravity_axis=gravity_axis,
         problems=tuple(problems),
     )
+
+
+MAX_SATURATED_FRACTION = 0.25
+"""Readings at full scale a hold may have on any axis. Peaks that clip now and then are
+dropped by the analysis (a rough unit before its trims can clip a few percent); a
+quarter of the hold gone means the element sits at a rail."""
+
+
+def sensor_in_motion_problems(
+    counts: NDArray[np.int16],
+    lsb_mps2: float,
+    *,
+    gravity_axis: Axis,
+    gravity_tolerance_mps2: float,
+) -> tuple[str, ...]:
+    """Why the samples of a hold are not acceleration (empty if they may be).
+
+    The self-check vouches for the sensor before the run; this vouches for it
+    during the run, hold by hold, so a sensor that saturates, is unplugged
+    (the node then streams zeros) or sticks midway can never yield a ripple
+    that passes a limit. Motion does not move the static gravity reading on a
+    load turning about a vertical axis, and a live axis is never constant.
+    """
+    received = int(counts.shape[0])
+    if received == 0:
+        return ("no sample arrived during the hold",)
+    problems: list[str] = []
+    clipped = int(np.count_nonzero(np.abs(counts.astype(np.int32)) >= SATURATED_COUNTS,
+                                   axis=0).max())
+    if clipped > MAX_SATURATED_FRACTION * received:
+        problems.append(f"{clipped} of {received} readings at full scale (±{SATURATED_COUNTS}):"
+                        " the sensor saturates")
+    gravity = float(counts[:, gravity_axis.column].astype(np.float64).mean()) * lsb_mps2
+    if abs(abs(gravity) - STANDARD_GRAVITY) > gravity_tolerance_mps2:
+        problems.append(f"axis {gravity_axis.value} reads {gravity:+.2f} m/s² on average, not "
+                        f"gravity: the MEMS element is unplugged, stuck or no longer mounted")
+    if received >= MIN_SAMPLES:
+        stuck = [axis.value for axis in Axis if int(np.ptp(counts[:, axis.column])) == 0]
+        if stuck:
+            problems.append(f"axis {', '.join(stuck)} never changes over {received} samples: "
+                            "dead or stuck")
+    return tuple(problems)

@@ -13,19 +13,27 @@ from __future__ import annotations
 import getpass
 import logging
 import os
+import tempfile
 from collections.abc import Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
 from drivers.base import CalibrationRecord
 from station import __version__
-from station.benches import BenchSpec, open_bench
+from station.benches import BenchSession, BenchSpec, open_bench
 from station.core import Trims
-from station.errors import InputError, StationError
+from station.errors import IdentityMismatch, InputError, StationError
 from station.limits import drift, drift_warnings
 from station.paths import default_database
-from station.procedure import CalibrationRequest, Observer, calibrate_unit, check_identity
+from station.procedure import (
+    CalibrationRequest,
+    Observer,
+    calibrate_unit,
+    check_identity,
+    unit_on_bench,
+)
 from station.qa import Capability, capability
 from station.recipes import (
     DEFAULT_RECIPE,
@@ -168,31 +176,63 @@ def _execute(store: Store, station: Station, serial: Serial, recipe: Recipe, run
             f"{station.bench.transport.value} drive does not give (bench {station.bench.name}): "
             "use a recipe with a magnitude_sweep table or method = \"paper\""
         )
-    run_id = store.begin_run(run, recipe.text)
-    folder = recordings_dir(station.db_path) / serial.label
+    folder = _recordings_folder(station.db_path, serial)
+    with ExitStack() as stack:
+        session: BenchSession | None = None
+        failure: StationError | None = None
+        try:
+            session = stack.enter_context(unit_on_bench(station.bench, serial, observer))
+        except IdentityMismatch:
+            raise  # the operator's mistake: nothing recorded, nothing written to the drive
+        except StationError as exc:
+            failure = exc  # a bench that cannot be reached is recorded like any station error
+        run_id = store.begin_run(run, recipe.text)
+        try:
+            try:
+                if failure is not None:
+                    raise failure
+                assert session is not None
+                recording = folder / f"{serial.label}-run{run_id:06d}{RECORDING_SUFFIX}"
+                request = CalibrationRequest(serial, recipe, station.bench, recording)
+                calibrate_unit(request, run, session, observer)
+            finally:
+                stack.close()  # the drive is disabled and the bench released before recording
+        except KeyboardInterrupt as exc:
+            run.verdict, run.reason = Verdict.ABORTED, str(exc) or "aborted by the operator"
+        except StationError as exc:
+            run.verdict, run.reason = Verdict.ERROR, str(exc)
+        except OSError as exc:
+            run.verdict, run.reason = Verdict.ERROR, f"{exc.filename}: {exc.strerror}"
+        except Exception as exc:
+            # A defect of the station, not of the unit: keep the traceback for the developers.
+            log.exception("internal error during the run of %s", serial)
+            run.verdict, run.reason = Verdict.ERROR, f"internal error: {exc!r}"
+        finally:
+            _finish(store, recipe, run, previous_trims)
+    return run
+
+
+def _recordings_folder(db_path: Path, serial: Serial) -> Path:
+    """The unit's recordings folder, made writable now: refused before any bus traffic."""
+    folder = recordings_dir(db_path) / serial.label
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        recording = folder / f"{serial.label}-run{run_id:06d}{RECORDING_SUFFIX}"
-        request = CalibrationRequest(serial, recipe, station.bench, recording)
-        calibrate_unit(request, run, observer)
-    except KeyboardInterrupt:
-        run.verdict, run.reason = Verdict.ABORTED, "aborted by the operator"
-    except StationError as exc:
-        run.verdict, run.reason = Verdict.ERROR, str(exc)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
     except OSError as exc:
-        run.verdict, run.reason = Verdict.ERROR, f"{exc.filename}: {exc.strerror}"
-    except Exception as exc:
-        # A defect of the station, not of the unit: keep the traceback for the developers.
-        log.exception("internal error during the run of %s", serial)
-        run.verdict, run.reason = Verdict.ERROR, f"internal error: {exc!r}"
-    finally:
-        if run.verdict is None:
-            run.verdict, run.reason = Verdict.ABORTED, "the station was stopped during the run"
-        if previous_trims is not None and run.trims_after is not None:
-            run.warnings.extend(drift_warnings(recipe.limits, previous_trims, run.trims_after))
-        run.finished_at = datetime.now(UTC)
-        store.finish_run(run)
-    return run
+        raise InputError(f"recordings folder {folder}: cannot be written "
+                         f"({exc.strerror}); the run's recording would be lost") from None
+    return folder
+
+
+def _finish(store: Store, recipe: Recipe, run: Run, previous_trims: Trims | None) -> None:
+    """Whatever happened, the run gets a verdict and is recorded."""
+    if run.verdict is None:
+        run.verdict, run.reason = Verdict.ABORTED, "the station was stopped during the run"
+    if previous_trims is not None and run.trims_after is not None:
+        run.warnings.extend(drift_warnings(recipe.limits, previous_trims, run.trims_after))
+    run.finished_at = datetime.now(UTC)
+    store.finish_run(run)
 
 
 # --- verify -----------------------------------------------------------------------------------

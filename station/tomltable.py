@@ -217,6 +217,17 @@ class TomlTable:
             self._wrong_type(key, "a table", value)
         return TomlTable(self._problems, self.name(key), {}, absent=True)
 
+    def table_array(self, key: str) -> list[TomlTable]:
+        """An array of tables (``[[key]]``), each read strictly as ``key[i]``."""
+        value = self._raw(key)
+        if value is None:
+            return []
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            self._wrong_type(key, "an array of tables", value)
+            return []
+        return [TomlTable(self._problems, f"{self.name(key)}[{i}]", item)
+                for i, item in enumerate(value)]
+
     def choice(self, key: str, kind: type[E]) -> E | None:
         """One of an enum's values, or None (with the problem recorded)."""
         value = self.string(key)

@@ -158,15 +158,33 @@ def test_trims_outside_the_recipe_bounds_are_never_written(
     assert match["drive_trims"] == NOMINAL and match["recorded_trims"] is None
 
 
+def test_the_wrong_unit_on_the_fixture_exits_2_with_nothing_recorded_or_written(
+    tmp_path: Path, db: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str], drive_states_at_close: list[DriveState],
+) -> None:
+    bench = _bench_file(tmp_path, "swapped", '[sim]\nunit = "SN124"\n')
+    code, doc = _run(["calibrate", "SN123", "--bench", str(bench), "--db", str(db), "--json"],
+                     monkeypatch, capsys)
+    assert code == 2 and doc is None
+    assert "reports serial SN124" in LAST_STDERR[0]
+    with Store(db) as store:
+        assert store.history("SN123") == [] and store.history("SN124") == []
+    assert not (db.parent / "recordings" / "SN123").exists() or not any(
+        (db.parent / "recordings" / "SN123").iterdir())
+    # The unit on the fixture still holds its factory trims, untouched.
+    code, match = _run(["verify", "SN124", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert match["drive_trims"] == NOMINAL
+    assert drive_states_at_close[0] is not DriveState.OPERATION_ENABLED
+
+
 @pytest.mark.parametrize(
     ("bench_body", "reason"),
     [
-        ('[sim]\nunit = "SN124"\n', "reports serial SN124"),
         ("[sim]\nnoise_ug = 20000\n", "noise"),
         ('[sim]\n[fixture]\ntangential_axis = "y"\ngravity_axis = "x"\nradius_m = 0.04\n'
          "gear_ratio = 1.0\n", "gravity"),
     ],
-    ids=["wrong-unit", "noisy-sensor", "sensor-mounted-otherwise"],
+    ids=["noisy-sensor", "sensor-mounted-otherwise"],
 )
 def test_station_errors_are_recorded_with_their_reason_and_touch_no_trim(
     tmp_path: Path, db: Path, bench_body: str, reason: str,
@@ -279,7 +297,8 @@ def test_query_filters_runs_and_writes_csv(
     tmp_path: Path, db: Path, monkeypatch: pytest.MonkeyPatch,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    wrong = _bench_file(tmp_path, "wrong", '[sim]\nunit = "SN9"\n')
+    # A sensor far too noisy for its self-check: each run ends ERROR within moments.
+    wrong = _bench_file(tmp_path, "wrong", "[sim]\nnoise_ug = 20000\n")
     _run(["calibrate", "SN123", "--bench", str(wrong), "--db", str(db), "--json"],
          monkeypatch, capsys)
     _run(["calibrate", "SN124", "--bench", str(wrong), "--db", str(db), "--json"],

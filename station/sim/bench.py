@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
@@ -25,16 +26,18 @@ from types import TracebackType
 import can
 import canopen
 
+from drivers.base import DriveState, decode_statusword
 from drivers.canbus import DEFAULT_CHANNEL, VIRTUAL_INTERFACE
 from drivers.cia301 import SYNC_COB_ID
 from drivers.modbus_map import DEFAULT_UNIT_ID, ModbusLink
-from station.core import Effect, LoadKind
+from station.core import Effect, LoadKind, Trims
 from station.paths import sim_state_dir
 from station.physics.params import UnitParams, derive_unit
 from station.physics.plant import Plant
 from station.serials import parse_serial
 from station.sim import eeprom
-from station.sim.devices import SimDrive, SimSensor
+from station.sim.devices import TRIM_KEYS, SensorElement, SimDrive, SimSensor
+from station.sim.faults import Fault, FaultKind, FaultLog, bus_error_frame, bus_off_frame
 from station.sim.modbus import DEFAULT_WATCHDOG_S, SimModbusServer
 from station.sim.trajectory import period_us
 
@@ -60,6 +63,20 @@ class SimBenchConfig:
     drive_link: ModbusLink | None = None  # None: the drive is on the CAN bus (CANopen)
     modbus_unit: int = DEFAULT_UNIT_ID
     modbus_watchdog_s: float = DEFAULT_WATCHDOG_S  # 0: no communication watchdog
+    faults: tuple[Fault, ...] = ()  # injected, in simulated time since power-on
+
+
+@dataclass(frozen=True)
+class DriveSnapshot:
+    """The simulated drive as the station leaves it: what a soak run must check."""
+
+    state: DriveState
+    ram_trims: Trims  # the trims held in RAM (in effect from the next SYNC)
+    stored_trims: Trims  # the trims a power cycle would bring back (the EEPROM's)
+
+    @property
+    def enabled(self) -> bool:
+        return self.state is DriveState.OPERATION_ENABLED
 
 
 class SimBench:
@@ -105,6 +122,13 @@ class SimBench:
         self._bus: can.BusABC | None = None
         self._modbus: SimModbusServer | None = None
         self._closed = False
+        self.faults = FaultLog(config.faults)
+        self._schedule: dict[int, list[Fault]] = {}
+        for fault in config.faults:
+            self._schedule.setdefault(fault.at_sync(config.sync_period_s), []).append(fault)
+        self._sensor_frames_to_drop: list[Fault] = []
+        self._error_frames_to_send: list[Fault] = []
+        self.at_close: DriveSnapshot | None = None
 
     @property
     def drive_on_can(self) -> bool:
@@ -148,13 +172,29 @@ class SimBench:
                     watchdog_s=self.config.modbus_watchdog_s,
                 )
                 self._modbus.start()
+            with self._lock:
+                self._inject(self._schedule.pop(0, []))
         except BaseException:
             self.close()
             raise
 
+    def snapshot(self) -> DriveSnapshot:
+        """The drive's power state and trims, in RAM and in its EEPROM, right now."""
+        drive = self.drive
+        with self._lock:
+            state = decode_statusword(drive.statusword())
+            ram = Trims(*(float(drive.values[key]) for key in TRIM_KEYS))
+        image = drive.eeprom.image()
+        stored = Trims(*(float(image[key]) for key in TRIM_KEYS))
+        return DriveSnapshot(state, ram, stored)
+
     def close(self) -> None:
         """Stop the Modbus server, heartbeats, the bus reader and the bus; harmless when
-        already closed."""
+        already closed. The drive as the station left it is kept in ``at_close``."""
+        if not self._closed and self._network is not None:
+            self.at_close = self.snapshot()
+            if self.at_close.enabled:
+                _log.error("simulated drive %s left enabled by the station", self.config.serial)
         self._closed = True
         modbus, self._modbus = self._modbus, None
         network, self._network, self._bus = self._network, None, None
@@ -191,12 +231,84 @@ class SimBench:
                 drive.sync()
                 sensor.sample(counts)
                 self.sync_count += 1
+                if self._schedule:
+                    self._inject(self._schedule.pop(self.sync_count, []))
                 # Pack every frame before sending any: once the first frame is out, the
                 # station's threads wake up and compete for the interpreter.
                 burst = [*sensor.frames(), *(drive.frames() if self.drive_on_can else ())]
+                if self._sensor_frames_to_drop or self._error_frames_to_send:
+                    burst = self._disturb(burst)
                 for message in burst:
                     bus.send(message)
             except Exception:
                 # canopen's listener would only log the message; keep the traceback.
                 _log.exception("simulated bench failed at SYNC %d", self.sync_count + 1)
                 raise
+
+    # Fault injection (under the bench lock) ---------------------------------------------
+
+    def _inject(self, faults: list[Fault]) -> None:
+        for fault in faults:
+            self._arm(fault)
+
+    def _arm(self, fault: Fault) -> None:
+        drive, log, sync = self.drive, self.faults, self.sync_count
+        kind = fault.kind
+        _log.warning("injecting %s at SYNC %d", fault, sync)
+
+        def noted(what: str) -> Callable[[], None]:
+            return lambda: log.took_effect(fault, self.sync_count, what)
+
+        if kind is FaultKind.SDO_TIMEOUT:
+            if self._modbus is not None:
+                self._modbus.drop_requests(fault.count, noted("Modbus request unanswered"))
+            else:
+                drive.sdo_requests_to_drop += fault.count
+                drive.on_sdo_dropped = noted("SDO request unanswered")
+        elif kind is FaultKind.EEPROM_FAILURE:
+            drive.eeprom_fails = True
+            drive.on_store_failed = noted("store refused")
+        elif kind in (FaultKind.SENSOR_FRAMES_LOST, FaultKind.ERROR_FRAMES):
+            queue = (self._sensor_frames_to_drop if kind is FaultKind.SENSOR_FRAMES_LOST
+                     else self._error_frames_to_send)
+            queue.extend([fault] * fault.count)
+        else:
+            self._strike(fault)
+            log.took_effect(fault, sync, kind.value)
+
+    def _strike(self, fault: Fault) -> None:
+        """Faults that happen at once and last."""
+        drive, sensor, kind = self.drive, self.sensor, fault.kind
+        if kind is FaultKind.DRIVE_SILENT:
+            if self._modbus is not None:
+                self._modbus.silence()
+            else:
+                drive.fall_silent()
+            # The drive's own reaction to losing its master (CiA 402 0x6007, "disable
+            # voltage"), as a real drive's heartbeat consumer or watchdog would.
+            drive.communication_lost()
+        elif kind is FaultKind.SENSOR_SILENT:
+            sensor.fall_silent()
+        elif kind is FaultKind.BUS_OFF:
+            # The station's controller reports it; SocketCAN restarts it after restart-ms.
+            if self._bus is not None:
+                self._bus.send(bus_off_frame())
+        elif kind is FaultKind.POWER_CYCLE:
+            drive.power_cycle(on_can=self.drive_on_can)
+        elif kind is FaultKind.SENSOR_SATURATED:
+            sensor.element = SensorElement.SATURATED
+        elif kind is FaultKind.SENSOR_UNPLUGGED:
+            sensor.element = SensorElement.UNPLUGGED
+
+    def _disturb(self, burst: list[can.Message]) -> list[can.Message]:
+        """This SYNC's frames with a lost sensor TPDO or an error frame, as scheduled."""
+        if self._sensor_frames_to_drop:
+            fault = self._sensor_frames_to_drop.pop()
+            cob_id = self.sensor.tpdos[0].message.arbitration_id if self.sensor.tpdos else -1
+            burst = [m for m in burst if m.arbitration_id != cob_id]
+            self.faults.took_effect(fault, self.sync_count, "sensor TPDO1 lost")
+        if self._error_frames_to_send:
+            fault = self._error_frames_to_send.pop()
+            burst.append(bus_error_frame())
+            self.faults.took_effect(fault, self.sync_count, "error frame")
+        return burst

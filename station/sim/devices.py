@@ -41,6 +41,7 @@ from drivers.eds import PERSISTED, DeviceKind, load_od
 from station.core import (
     GAIN_UNITY,
     NOMINAL_TRIMS,
+    SATURATED_COUNTS,
     SENSOR_COUNTER_MODULUS,
     SENSOR_RANGES_G,
     Trims,
@@ -231,6 +232,14 @@ def next_state(state: DriveState, command: Cw) -> DriveState:
 
 # --- Generic device: object table, SDO callbacks, NMT, TPDOs -------------------------------
 
+class SensorElement(Enum):
+    """The MEMS element behind the sensor node (broken ones are injected faults)."""
+
+    SOUND = "sound"
+    SATURATED = "saturated"
+    UNPLUGGED = "unplugged"
+
+
 class SensorPlant(Protocol):
     """The part of the plant the sensor node needs (its MEMS element)."""
 
@@ -288,6 +297,9 @@ class SimNode:
         }
         self.tpdos: list[Tpdo] = []
         self.operational = False
+        self.silent = False  # off the bus: hears nothing, says nothing (a fault)
+        self.sdo_requests_to_drop = 0  # the next requests go unanswered (a fault)
+        self.on_sdo_dropped: Callable[[], None] | None = None
         self._lock = lock
         self.node.add_read_callback(self._on_read)  # type: ignore[no-untyped-call]
         self.node.add_write_callback(self._on_write)  # type: ignore[no-untyped-call]
@@ -338,9 +350,16 @@ class SimNode:
         with self._lock:
             self._reset(NmtCommand.RESET_NODE)
 
+    def fall_silent(self) -> None:
+        """Drop off the bus for good (a dead transceiver, a cut cable): no heartbeat,
+        no TPDO, no answer to SDO or NMT."""
+        with self._lock:
+            self.silent = True
+            self.node.nmt.stop_heartbeat()  # type: ignore[no-untyped-call]
+
     def frames(self) -> Iterator[can.Message]:
         """This SYNC's TPDO frames, in PDO number order (only when OPERATIONAL)."""
-        if self.operational:
+        if self.operational and not self.silent:
             for tpdo in self.tpdos:
                 if tpdo.enabled:
                     yield tpdo.frame()
@@ -462,13 +481,18 @@ class SimNode:
 
     def _on_sdo_request(self, can_id: int, data: bytearray, timestamp: float) -> None:
         # CiA 301: no SDO service in STOPPED; the client simply times out.
-        if self.node.nmt._state == NmtState.STOPPED:
+        if self.node.nmt._state == NmtState.STOPPED or self.silent:
             return
         with self._lock:
+            if self.sdo_requests_to_drop > 0:
+                self.sdo_requests_to_drop -= 1
+                if self.on_sdo_dropped is not None:
+                    self.on_sdo_dropped()
+                return
             self.node.sdo.on_request(can_id, data, timestamp)  # type: ignore[no-untyped-call]
 
     def _on_nmt(self, can_id: int, data: bytearray, timestamp: float) -> None:
-        if len(data) < 2 or data[1] not in (0, self.node_id):
+        if len(data) < 2 or data[1] not in (0, self.node_id) or self.silent:
             return
         try:
             command = NmtCommand(data[0])
@@ -596,6 +620,8 @@ class SimDrive(SimNode):
         factory[Obj.RATED_CURRENT] = rated_current_mA
         factory[Obj.MICROSTEPS] = microsteps
         self.eeprom = Eeprom(eeprom_path, serial, factory)
+        self.eeprom_fails = False  # every store is refused (a worn or broken EEPROM)
+        self.on_store_failed: Callable[[], None] | None = None
         problems = self._image_problems(factory) + self._image_problems(self.eeprom.image())
         if problems:
             raise DeviceError("drive", f"EEPROM image {eeprom_path}: " + "; ".join(problems))
@@ -705,6 +731,15 @@ class SimDrive(SimNode):
                 return False
             self._enter(DriveState.SWITCH_ON_DISABLED)
             return True
+
+    def power_cycle(self, *, on_can: bool = True) -> None:
+        """Lose power and boot again: RAM (trims written since the last store, the
+        power state) is gone; the stored parameters come back from the EEPROM."""
+        with self._lock:
+            if on_can:
+                self._reset(NmtCommand.RESET_NODE)  # boot-up frame, then PRE-OPERATIONAL
+            else:
+                self.reset_application()
 
     def trip(self, code: FaultCode) -> None:
         """Fault the drive (fault reaction ends in FAULT): de-energise and send EMCY."""
@@ -843,6 +878,11 @@ class SimDrive(SimNode):
     def _write_store(self, value: int) -> None:
         if value != Signature.SAVE:
             raise SdoAbortedError(AbortCode.CANNOT_STORE)
+        if self.eeprom_fails:
+            _log.error("drive %s: EEPROM write failed (injected fault)", self.eeprom.serial)
+            if self.on_store_failed is not None:
+                self.on_store_failed()
+            raise SdoAbortedError(AbortCode.CANNOT_STORE)
         try:
             self.eeprom.store({key: int(self.values[key]) for key in self.persisted})
         except OSError as exc:
@@ -901,12 +941,21 @@ class SimSensor(SimNode):
     ) -> None:
         super().__init__(node_id, period_us=period_us, lock=lock)
         self.plant = plant
+        self.element = SensorElement.SOUND
         self.live[Obj.SENSITIVITY] = plant.sensor_lsb_mps2
         self.handlers[Obj.SENSOR_RANGE] = self._write_range
 
     def sample(self, counts: tuple[int, int, int]) -> None:
         """SYNC: take the sample the plant produced for this instant (already
         quantised and saturated at ±32767 by the sensor model)."""
+        if self.element is SensorElement.SATURATED:
+            # A MEMS element gone to a rail (a shock, a latched self-test): full scale.
+            counts = tuple(  # type: ignore[assignment]
+                SATURATED_COUNTS if c >= 0 else -SATURATED_COUNTS for c in counts
+            )
+        elif self.element is SensorElement.UNPLUGGED:
+            # The node still streams, but the SPI bus to the element reads zeros.
+            counts = (0, 0, 0)
         values = self.values
         values[Obj.SAMPLE_COUNTER] = (int(values[Obj.SAMPLE_COUNTER]) + 1) % SENSOR_COUNTER_MODULUS
         values[Obj.ACCEL_X], values[Obj.ACCEL_Y], values[Obj.ACCEL_Z] = counts

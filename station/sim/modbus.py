@@ -339,6 +339,9 @@ class SimModbusServer:
         self._registers = DriveRegisters(drive)
         self._lifecycle = _Lifecycle.NEW
         self._silent = threading.Event()
+        self._drop_lock = threading.Lock()
+        self._requests_to_drop = 0
+        self._on_dropped: Callable[[], None] | None = None
         self._closing = threading.Event()
         self._ready = threading.Event()
         self._last_heard = time.monotonic()
@@ -378,6 +381,12 @@ class SimModbusServer:
     def speak(self) -> None:
         """Undo ``silence``."""
         self._silent.clear()
+
+    def drop_requests(self, count: int, on_dropped: Callable[[], None] | None = None) -> None:
+        """Leave the next ``count`` requests unanswered (noise on the line, a busy drive)."""
+        with self._drop_lock:
+            self._requests_to_drop += count
+            self._on_dropped = on_dropped
 
     def start(self) -> None:
         """Open the link and serve; returns once clients can connect. No-op when running."""
@@ -509,6 +518,15 @@ class SimModbusServer:
         if sending:
             return pdu
         if self._silent.is_set() or pdu.dev_id != self.unit:
+            return _Unanswered(pdu)
+        with self._drop_lock:
+            dropped = self._requests_to_drop > 0
+            if dropped:
+                self._requests_to_drop -= 1
+            on_dropped = self._on_dropped
+        if dropped:
+            if on_dropped is not None:
+                on_dropped()
             return _Unanswered(pdu)
         self._last_heard = time.monotonic()
         if pdu.function_code not in _FUNCTIONS:
