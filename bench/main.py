@@ -22,6 +22,7 @@ from bench import (
     history_speed,
     plant_speed,
     recording_memory,
+    soak,
 )
 from bench.analysis_speed import MinuteRecording
 from bench.record import BenchRecord, Goal
@@ -50,6 +51,7 @@ def _measures(minute: MinuteRecording) -> dict[str, Measure]:
         "history_speed": history_speed.measure,
         "calibration": calibration.measure,
         "diagnosis": diagnosis.measure,
+        "soak": soak.measure,
     }
 
 
