@@ -7,7 +7,7 @@ import pytest
 from numpy.typing import NDArray
 
 from station.core import SATURATED_COUNTS, STANDARD_GRAVITY, Axis
-from station.selfcheck import sensor_self_check
+from station.selfcheck import sensor_in_motion_problems, sensor_self_check
 
 LSB = 2 * STANDARD_GRAVITY / 32768  # the 2 g range: 1 g is 16384 counts
 G_COUNTS = 16384
@@ -189,3 +189,47 @@ def test_too_few_samples_to_judge_do_not_also_call_an_axis_dead() -> None:
     ok, problems = check(counts, expected=9)
     assert not ok
     assert problems == ("only 9 of 9 samples arrived at standstill",)
+
+
+# --- During the run: is a hold's data acceleration at all? -----------------------------
+
+
+def in_motion(counts: NDArray[np.int16]) -> tuple[str, ...]:
+    return sensor_in_motion_problems(counts, LSB, gravity_axis=Axis.Z,
+                                     gravity_tolerance_mps2=TOLERANCE)
+
+
+def vibrating(amplitude_counts: float, n: int = 2000) -> NDArray[np.int16]:
+    """A running motor: a large tangential (X) ripple on top of the sensor at rest."""
+    raw = counts_at_rest(n=n).astype(np.float64)
+    raw[:, Axis.X.column] += amplitude_counts * np.sin(np.linspace(0, 40 * np.pi, n))
+    return np.asarray(np.clip(np.round(raw), -SATURATED_COUNTS, SATURATED_COUNTS), dtype=np.int16)
+
+
+def test_a_hold_that_clips_its_ripple_peaks_is_still_acceleration() -> None:
+    counts = vibrating(60000.0)  # clips about half of the tangential samples
+    clipped = np.mean(np.abs(counts[:, Axis.X.column]) >= SATURATED_COUNTS)
+    assert 0.3 < clipped < 0.7
+    assert in_motion(counts) == ()
+
+
+def test_a_sensor_at_its_rails_is_refused_for_saturating() -> None:
+    counts = np.where(vibrating(1000.0) >= 0, SATURATED_COUNTS, -SATURATED_COUNTS)
+    problems = in_motion(np.asarray(counts, dtype=np.int16))
+    assert any("saturates" in p for p in problems)
+
+
+def test_an_unplugged_element_streaming_zeros_is_refused_for_missing_gravity() -> None:
+    problems = in_motion(np.zeros((500, 3), dtype=np.int16))
+    assert any("not gravity" in p for p in problems)
+    assert any("never changes" in p for p in problems)
+
+
+def test_an_element_that_dies_midway_through_a_hold_is_caught_by_gravity() -> None:
+    counts = vibrating(2000.0)
+    counts[len(counts) // 3:] = 0
+    assert any("not gravity" in p for p in in_motion(counts))
+
+
+def test_a_hold_without_any_sample_is_refused() -> None:
+    assert in_motion(np.zeros((0, 3), dtype=np.int16)) == ("no sample arrived during the hold",)
