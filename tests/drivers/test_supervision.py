@@ -20,7 +20,8 @@ from station.sim.faults import bus_error_frame, bus_off_frame
 
 @pytest.fixture
 def drive(network: canopen.Network) -> Iterator[CanopenDrive]:
-    with CanopenDrive(network, sdo_timeout_s=0.1) as d:
+    d = CanopenDrive(network, sdo_timeout_s=0.1)
+    with d:
         yield d
 
 
