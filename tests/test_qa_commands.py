@@ -152,13 +152,14 @@ def test_recipes_command_lists_the_shipped_recipes(
 def test_an_error_run_shows_the_operator_an_error_banner_with_its_reason(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    bench = tmp_path / "wrong.toml"
-    bench.write_text('[sim]\nunit = "SN77"\n', encoding="utf-8")
+    bench = tmp_path / "unplugged.toml"
+    bench.write_text('[sim]\n[[sim.faults]]\nkind = "sensor_unplugged"\nat_s = 1.0\n',
+                     encoding="utf-8")
     monkeypatch.setenv("COLUMNS", "100")
     code, out = _cli(["calibrate", "SN123", "--bench", str(bench), "--db",
                       str(tmp_path / "s.db")], monkeypatch, capsys)
     assert code == 3
-    assert "SN123: ERROR" in out and "reports serial SN77" in " ".join(out.split())
+    assert "SN123: ERROR" in out and "not gravity" in " ".join(out.split())
 
 
 def test_a_stored_run_with_an_unknown_limit_name_still_reads_back(db: Path) -> None:
