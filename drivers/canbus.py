@@ -855,6 +855,26 @@ class SdoChannel:
         )
 
 
+def check_alive(heartbeat: HeartbeatWatch, sdo: SdoChannel, device: str, *,
+                max_age_s: float, boots_expected: int) -> None:
+    """Raise if the node rebooted, or fell silent: a late heartbeat is confirmed first.
+
+    Heartbeats are passive, so a host too busy to read the bus for a moment
+    looks exactly like a dead node; one SDO request (retried as any) tells
+    them apart before a good unit's run is thrown away.
+    """
+    try:
+        heartbeat.check(device, max_age_s=max_age_s, boots_expected=boots_expected)
+    except DeviceRebooted:
+        raise
+    except DeviceTimeout as late:
+        try:
+            sdo.read_int(0x1000)  # device type: every CiA 301 node has it
+        except DeviceTimeout as silent:
+            raise late from silent
+        log.warning("%s: %s, but it answers SDO: its heartbeat is late, not gone", device, late)
+
+
 def check_node_id(node_id: int, device: str) -> None:
     """CiA 301 node-IDs are 1..127; refuse anything else before touching the bus."""
     if isinstance(node_id, bool) or not isinstance(node_id, int) or not 1 <= node_id <= 127:

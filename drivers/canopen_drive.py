@@ -23,6 +23,7 @@ from drivers.canbus import (
     HeartbeatWatch,
     SdoChannel,
     attach_remote_node,
+    check_alive,
     check_node_id,
     detach_remote_node,
     send_nmt,
@@ -285,8 +286,8 @@ class CanopenDrive(Drive):
 
     def check_alive(self, max_age_s: float = LIVENESS_TIMEOUT_S) -> None:
         """Raise unless a heartbeat came within ``max_age_s`` and no unasked boot-up did."""
-        self._heartbeat.check(self.name, max_age_s=max_age_s,
-                              boots_expected=self._boots_expected)
+        check_alive(self._heartbeat, self._sdo, self.name, max_age_s=max_age_s,
+                    boots_expected=self._boots_expected)
 
     # -- teardown --------------------------------------------------------------
 

@@ -23,6 +23,7 @@ from drivers.canbus import (
     HeartbeatWatch,
     SdoChannel,
     attach_remote_node,
+    check_alive,
     check_node_id,
     detach_remote_node,
     start_node,
@@ -193,8 +194,8 @@ class CanopenSensor(AccelerationSensor):
 
     def check_alive(self, max_age_s: float = LIVENESS_TIMEOUT_S) -> None:
         """Raise if the node fell silent, or rebooted (its range is back to the default)."""
-        self._heartbeat.check(self.name, max_age_s=max_age_s,
-                              boots_expected=self._boots_expected)
+        check_alive(self._heartbeat, self._sdo, self.name, max_age_s=max_age_s,
+                    boots_expected=self._boots_expected)
 
     def _on_sample(self, can_id: int, data: bytearray, timestamp: float) -> None:
         # Notifier thread, once per SYNC: copy the payload and nothing else.

@@ -119,7 +119,7 @@ def test_error_frames_are_counted_and_bus_off_stops_the_run(
 def test_the_clock_calls_its_supervisor_and_stops_when_it_raises(
     bench: SimBench, network: canopen.Network,
 ) -> None:
-    sensor = CanopenSensor(network)
+    sensor = CanopenSensor(network, sdo_timeout_s=0.1)
     with CanopenDrive(network) as drive, sensor:
         cob_ids = bench_tpdo_cob_ids(1, 16, drive_name=drive.name, sensor_name=sensor.name)
         calls: list[int] = []
