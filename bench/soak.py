@@ -144,10 +144,11 @@ def soak(runs: int = RUNS, seed: int = SEED, *, log: bool = True) -> Tally:
                 spec = replace(SIM_SPEC, sim=SimSettings(faults=faults))
                 run = calibrate(Station(db, spec, "soak"), serial).run
                 bench = _Watched.closed[-1] if _Watched.closed else None
-                _judge(run, bench, db, tally)
+                flags = _judge(run, bench, db, tally)
                 if log:
                     print(f"{number:3d} {serial} {', '.join(map(str, faults)) or '-':50.50} "
-                          f"{run.verdict}: {(run.reason or '')[:90]}", file=sys.stderr)
+                          f"{run.verdict}: {(run.reason or '')[:90]} {' '.join(flags)}",
+                          file=sys.stderr, flush=True)
             tally.seconds = time.perf_counter() - start
             with Store(db) as store:
                 rows = len(store.query(RunFilter()))
@@ -158,29 +159,39 @@ def soak(runs: int = RUNS, seed: int = SEED, *, log: bool = True) -> Tally:
     return tally
 
 
-def _judge(run: Run, bench: SimBench | None, db: Path, tally: Tally) -> None:
+def _judge(run: Run, bench: SimBench | None, db: Path, tally: Tally) -> list[str]:
+    """Count what went wrong with this run; the flags name it for the log line."""
+    flags: list[str] = []
     tally.verdicts[run.verdict.value if run.verdict else "none"] += 1
     with Store(db) as store:
-        if _record_problem(run, store) is not None:
-            tally.lost_or_inconsistent += 1
+        problem = _record_problem(run, store)
         last = store.last_stored(run.serial)
+    if problem is not None:
+        tally.lost_or_inconsistent += 1
+        flags.append(f"RECORD({problem})")
     end = bench.at_close if bench is not None else None
-    if end is None:
-        return  # the bench never opened: nothing reached a drive
-    effective = {e.fault.kind for e in bench.faults.effects} if bench is not None else set()
+    if bench is None or end is None:
+        return flags  # the bench never opened: nothing reached a drive
+    effective = {e.fault.kind for e in bench.faults.effects}
     tally.faults_effective += len(effective)
     if end.enabled:
         tally.left_enabled += 1
+        flags.append("LEFT-ENABLED")
     expected = last.trims_after if last is not None else NOMINAL_TRIMS
     if end.stored_trims != expected:
         tally.trims_differing += 1
+        flags.append("EEPROM-DIFFERS")
     elif end.ram_trims != end.stored_trims:
         if any("could not restore" in w for w in run.warnings):
             tally.unreachable += 1
+            flags.append("(unreachable: RAM not restored)")
         else:
             tally.trims_differing += 1
+            flags.append("RAM-DIFFERS")
     if run.verdict is Verdict.PASS and effective & SPOILING:
         tally.spoiled_passes += 1
+        flags.append("SPOILED-PASS")
+    return flags
 
 
 @contextmanager
