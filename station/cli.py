@@ -4,6 +4,12 @@ Thin on purpose: parse, call one procedure, print. Data goes to stdout (one
 JSON document with ``--json``), logs and progress to stderr. Exit codes:
 0 success, 1 unit failed a limit, 2 usage/recipe/input error (nothing done),
 3 station or device error, or aborted.
+
+The commands that move a drive or record for long (``calibrate``,
+``recalibrate``, ``characterize``, ``sim record``) run under
+``station.signals.stop_on_signals``: SIGINT and SIGTERM stop them once,
+cleanly (drive disabled, run recorded as ``aborted`` with the signal named),
+and a second signal cannot cut that cleanup short.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console, Group
 from rich.logging import RichHandler
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 from rich.text import Text
@@ -59,6 +66,7 @@ from station.service import (
     statistics,
     verify,
 )
+from station.signals import stop_on_signals
 from station.sim.record import SimRecordRequest, describe_unit, record_simulation
 from station.store import RunFilter
 from station.views import (
@@ -90,6 +98,35 @@ app.add_typer(sim_app, name="sim")
 
 JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON document on stdout.")]
 NO_EFFECTS = "none"
+
+_TYPER_INTERRUPTED = 130
+"""What typer returns (standalone_mode=False) when a KeyboardInterrupt leaves a command."""
+
+
+class CommandAborted(StationError):
+    """A stop (Ctrl-C, SIGTERM) that ended a command outside any run's own recording.
+
+    Runs record their own abort and end with their verdict's exit code; this
+    is the stop that came before a run began, or in a command that records no
+    run. Raised as a ``StationError`` because typer would turn the
+    ``KeyboardInterrupt`` into exit 130, and CLI.md promises 3 for aborted.
+    """
+
+    exit_code = ExitCode.STATION
+
+
+@contextmanager
+def _stoppable() -> Iterator[None]:
+    """Run a long command under ``stop_on_signals``; a stop that escapes it exits 3.
+
+    The block includes printing the result: once a stop has been delivered and
+    the run recorded, further signals cannot cut the report of it short.
+    """
+    try:
+        with stop_on_signals():
+            yield
+    except KeyboardInterrupt as exc:
+        raise CommandAborted(f"aborted: {str(exc) or 'by the operator'}") from exc
 
 
 @app.callback()
@@ -215,10 +252,11 @@ def sim_record(
         truth=truth,
         range_g=range_g,
     )
-    with _progress(f"recording {request.serial}", enabled=not as_json) as update:
-        result = record_simulation(request, on_progress=update)
-    doc = result.as_dict()
-    _emit(doc, as_json, human=_table("simulated recording", doc))
+    with _stoppable():
+        with _progress(f"recording {request.serial}", enabled=not as_json) as update:
+            result = record_simulation(request, on_progress=update)
+        doc = result.as_dict()
+        _emit(doc, as_json, human=_table("simulated recording", doc))
 
 
 @sim_app.command("unit")
@@ -390,15 +428,16 @@ def characterize_command(
     """Run the characterization schedule (speeds both ways, three currents, small trim
     steps) around the unit's own trims, record it beside the database, and diagnose it."""
     station = _station(db, bench, operator)
-    with _progress(f"characterizing {serial}", enabled=not as_json) as update:
-        def on_step(text: str) -> None:
-            if not as_json:
-                stderr.print(f"[bold]characterize[/] {text}", highlight=False)
+    def on_step(text: str) -> None:
+        if not as_json:
+            stderr.print(f"[bold]characterize[/] {text}", highlight=False)
 
-        result = characterize(station, serial, recipe_name=recipe, on_step=on_step,
-                              on_progress=update, write_report=not no_report)
-    doc = result.as_dict()
-    _emit(doc, as_json, human=diagnosis_view(doc))
+    with _stoppable():
+        with _progress(f"characterizing {serial}", enabled=not as_json) as update:
+            result = characterize(station, serial, recipe_name=recipe, on_step=on_step,
+                                  on_progress=update, write_report=not no_report)
+        doc = result.as_dict()
+        _emit(doc, as_json, human=diagnosis_view(doc))
 
 
 @contextmanager
@@ -489,9 +528,10 @@ def calibrate_command(
 ) -> int:
     """Calibrate one unit: sweep, estimate, store, verify, record (exit 0 pass, 1 fail, 3 error)."""
     station = _station(db, bench, operator)
-    with _operator_display(not as_json) as display:
-        result = calibrate(station, serial, recipe, observer=display)
-    return _finish_run(result, as_json)
+    with _stoppable():
+        with _operator_display(not as_json) as display:
+            result = calibrate(station, serial, recipe, observer=display)
+        return _finish_run(result, as_json)
 
 
 @app.command("recalibrate")
@@ -514,10 +554,11 @@ def recalibrate_command(
 ) -> int:
     """Field service: recalibrate a unit and show how far its trims drifted."""
     station = _station(db, bench, operator)
-    with _operator_display(not as_json) as display:
-        result = recalibrate(station, serial, reason, recipe_name=recipe, force=force,
-                             observer=display)
-    return _finish_run(result, as_json)
+    with _stoppable():
+        with _operator_display(not as_json) as display:
+            result = recalibrate(station, serial, reason, recipe_name=recipe, force=force,
+                                 observer=display)
+        return _finish_run(result, as_json)
 
 
 @app.command("verify")
@@ -677,9 +718,16 @@ def main() -> None:
     except KeyboardInterrupt:
         stderr.print("[bold red]aborted[/]")
         sys.exit(ExitCode.STATION)
+    except CommandAborted as exc:
+        stderr.print(f"[bold red]{escape(str(exc))}[/]", highlight=False)
+        sys.exit(exc.exit_code)
     except StationError as exc:
         stderr.print(f"[bold red]error:[/] {exc}", highlight=False)
         sys.exit(exc.exit_code)
+    if result == _TYPER_INTERRUPTED:
+        # Ctrl-C in a short command (QA, verify) that runs without stop_on_signals.
+        stderr.print("[bold red]aborted[/]")
+        sys.exit(ExitCode.STATION)
     sys.exit(result if isinstance(result, int) else ExitCode.OK)
 
 

@@ -181,6 +181,8 @@ def read_metadata(log_path: Path) -> RecordingMetadata:
         raise RecordingError(f"{log_path}: metadata file {path.name} is missing") from None
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read metadata: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise RecordingError(f"{path}: metadata is not UTF-8 text") from None
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:

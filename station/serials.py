@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 from station.errors import InputError
 
-_LABEL = re.compile(r"SN(0|[1-9]\d{0,9})")
+# [0-9], not \d: \d also matches other scripts' digits, which int() would quietly accept.
+_LABEL = re.compile(r"SN(0|[1-9][0-9]{0,9})")
 _U32_MAX = 0xFFFF_FFFF
 
 

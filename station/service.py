@@ -117,6 +117,8 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
     serial = parse_serial(serial_label)
     if not reason.strip():
         raise InputError("--reason must say why the unit is recalibrated")
+    # A named recipe is checked before the database is even opened (nothing done on error).
+    chosen = load_recipe(recipe_name) if recipe_name is not None else None
     with Store(station.db_path) as store:
         previous = store.last_stored(serial.label)
         if previous is None and not force:
@@ -124,8 +126,10 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
                 f"{serial} has no recorded calibration at this station's database "
                 f"({station.db_path}); use --force to calibrate it anyway"
             )
-        if recipe_name is not None or previous is None:
-            recipe = load_recipe(recipe_name or DEFAULT_RECIPE)
+        if chosen is not None:
+            recipe = chosen
+        elif previous is None:
+            recipe = load_recipe(DEFAULT_RECIPE)
         else:
             recipe = _recipe_of(store, previous)
         run = _new_run(station, serial, recipe, RunKind.RECALIBRATE)

@@ -1,25 +1,36 @@
 """The station's SQLite results database, and the only module that speaks SQL.
 
 A run becomes a row the moment it begins and is committed at once, so a
-station that dies mid-run still leaves a trace (verdict NULL) that the next
-start can report; the results then replace the row's open fields in one
-transaction. The schema is the numbered migrations of the ``db`` package,
-applied in order on first use; a database written by newer software is refused
-rather than half-understood. Every sqlite3 failure surfaces as a
-``DatabaseError`` naming the file, so the CLI can say which disk to look at.
+station that dies mid-run still leaves a trace (verdict NULL); the results
+then fill the row's open fields in one transaction, once: finished runs, their
+limit checks, verifications and recipe texts are append-only, enforced by
+SQLite triggers (``db/0002_append_only.sql``) for every connection. Each open
+run names its owner process (host, boot, pid, start time), so the next run to
+begin can finish as ``aborted`` the runs whose process provably died
+(``kill -9``, power loss) and leave alone those still running elsewhere.
+
+The schema is the numbered migrations of the ``db`` package, applied in order
+on first use; a database written by newer software is refused rather than
+half-understood. Every sqlite3 failure surfaces as a ``DatabaseError`` naming
+the file, so the CLI can say which disk to look at; a path that cannot hold a
+database at all (a directory, an unwritable folder, a read-only file) is a
+``DatabasePathError``, the operator's input error, found before anything runs.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
+import os
 import re
+import socket
 import sqlite3
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, fields
-from datetime import datetime
+from datetime import UTC, datetime
 from importlib.resources import files
 from importlib.resources.abc import Traversable
 from pathlib import Path
@@ -27,7 +38,7 @@ from types import TracebackType
 from typing import Self
 
 from station.core import Trims
-from station.errors import DatabaseError, InputError
+from station.errors import DatabaseError, DatabasePathError, InputError
 from station.runs import (
     LimitCheck,
     RecipeRef,
@@ -39,6 +50,9 @@ from station.runs import (
     parse_utc_iso,
     utc_iso,
 )
+from station.signals import held
+
+log = logging.getLogger(__name__)
 
 MIGRATIONS_PACKAGE = "db"
 """Where the shipped migrations live (package data, so they work installed)."""
@@ -73,7 +87,7 @@ def _group(prefix: str, names: Sequence[str]) -> tuple[str, ...]:
     return tuple(f"{prefix}_{name}" for name in names)
 
 
-# What the run learns: finish_run rewrites all of these, so a second finish corrects the first.
+# What the run learns: finish_run writes all of these, once (a finished run is final).
 _TRIM_GROUPS = ("trims_before", "trims_after", "trims_estimated", "uncertainty")
 _RIPPLE_GROUPS = ("before", "after")
 _RESULT_COLUMNS = (
@@ -115,9 +129,16 @@ def _insert(table: str, columns: Sequence[str], verb: str = "INSERT") -> str:
 _INSERT_RECIPE = _insert(
     "recipes", ("sha256", "name", "version", "text", "first_used_at"), "INSERT OR IGNORE"
 )
-_INSERT_RUN = _insert("runs", _START_COLUMNS)
+# The owner is the store's, not the run's: it says which process wrote the row.
+_INSERT_RUN = _insert("runs", (*_START_COLUMNS, "owner"))
 _UPDATE_RESULTS = (
     f"UPDATE runs SET {', '.join(f'{c} = :{c}' for c in _RESULT_COLUMNS)} WHERE run_id = :run_id"
+)
+# Served by the partial index runs_open: the open runs, however many finished ones there are.
+_SELECT_OPEN_RUNS = "SELECT run_id, serial, owner FROM runs WHERE verdict IS NULL ORDER BY run_id"
+_FINISH_INTERRUPTED = (
+    "UPDATE runs SET verdict = :verdict, reason = :reason, finished_at = :finished_at "
+    "WHERE run_id = :run_id AND verdict IS NULL"
 )
 _INSERT_LIMIT = _insert("limit_checks", _LIMIT_COLUMNS)
 _INSERT_VERIFICATION = _insert("verifications", _VERIFICATION_COLUMNS)
@@ -200,23 +221,230 @@ class VerificationRecord:
     recorded_trims: Trims | None
 
 
+# -- who runs an open run, and whether that process is gone -------------------------
+
+_BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
+_OWN_PID_NAMESPACE = Path("/proc/self/ns/pid")
+_ZOMBIE_STATES = frozenset("ZX")  # exited (or being reaped): it will never write again
+
+
+@dataclass(frozen=True)
+class RunOwner:
+    """The process that began an open run: enough to tell later whether it still runs.
+
+    A pid alone is not enough: after a reboot or enough process churn it names
+    another process. ``start_time`` (clock ticks after boot, field 22 of
+    ``/proc/<pid>/stat``) tells a reused pid apart, ``boot_id`` a reboot, and
+    ``pid_ns`` a process in another container, whose pids mean nothing here.
+    ``None`` where Linux did not tell (not Linux, /proc not mounted): such an
+    owner is never judged gone, because nothing proves it.
+    """
+
+    host: str
+    pid: int
+    boot_id: str | None = None
+    start_time: int | None = None
+    pid_ns: str | None = None
+
+    def to_json(self) -> str:
+        return json.dumps(
+            {"host": self.host, "boot_id": self.boot_id, "pid": self.pid,
+             "start_time": self.start_time, "pid_ns": self.pid_ns},
+            separators=(",", ":"),
+        )
+
+    @classmethod
+    def from_json(cls, text: str | None) -> RunOwner | None:
+        """The owner a row names; None when the row names none or nothing readable.
+
+        A row written before migration 0002, or edited by hand into nonsense,
+        must not stop the next run from beginning: it is only left alone.
+        """
+        if text is None:
+            return None
+        try:
+            doc = json.loads(text)
+        except ValueError:
+            return None
+        if not isinstance(doc, dict):
+            return None
+        host, pid = doc.get("host"), doc.get("pid")
+        boot_id, start_time, pid_ns = doc.get("boot_id"), doc.get("start_time"), doc.get("pid_ns")
+        if not isinstance(host, str) or type(pid) is not int:
+            return None
+        return cls(
+            host=host,
+            pid=pid,
+            boot_id=boot_id if isinstance(boot_id, str) else None,
+            start_time=start_time if type(start_time) is int else None,
+            pid_ns=pid_ns if isinstance(pid_ns, str) else None,
+        )
+
+
+@dataclass(frozen=True)
+class ProcessInfo:
+    """What this machine says about a pid that exists."""
+
+    start_time: int | None
+    """Field 22 of ``/proc/<pid>/stat``; None when it could not be read."""
+    ended: bool = False
+    """The process has exited and waits to be reaped (a zombie): it can write nothing more."""
+
+
+ProcessProbe = Callable[[int], ProcessInfo | None]
+"""Look a pid up on this machine: None when no such process exists."""
+
+
+def _read_text(path: Path) -> str | None:
+    """A small /proc file, stripped; None when unreadable or empty.
+
+    Not strict about the encoding: a process name may hold any bytes, and the
+    numbers around it are what is read.
+    """
+    try:
+        return path.read_bytes().decode("ascii", errors="replace").strip() or None
+    except OSError:
+        return None
+
+
+def _stat_fields(pid: int) -> list[str] | None:
+    """``/proc/<pid>/stat`` from field 3 (state) on; None when unreadable.
+
+    Field 2 is the command name in parentheses, which may itself hold spaces
+    and parentheses: the fields start after the last ``)``.
+    """
+    text = _read_text(Path(f"/proc/{pid}/stat"))
+    if text is None or ")" not in text:
+        return None
+    return text.rsplit(")", 1)[1].split()
+
+
+def probe_process(pid: int) -> ProcessInfo | None:
+    """This machine's answer about ``pid``: gone (None), or its start time and state.
+
+    ``kill(pid, 0)`` decides existence (PermissionError: it exists, another
+    user's), so a ``/proc`` mounted with ``hidepid`` cannot make a live
+    station look dead; ``/proc`` then gives the start time when it can.
+    """
+    if pid <= 0:
+        return None
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return None
+    except OSError:
+        pass  # EPERM: it exists
+    stat = _stat_fields(pid)
+    if stat is None or len(stat) < 20:
+        return ProcessInfo(start_time=None)
+    try:
+        start_time = int(stat[19])  # field 22; stat[0] is field 3
+    except ValueError:
+        start_time = None
+    return ProcessInfo(start_time=start_time, ended=stat[0] in _ZOMBIE_STATES)
+
+
+def current_owner() -> RunOwner:
+    """This process, as a run it begins records its owner."""
+    pid = os.getpid()
+    me = probe_process(pid)
+    try:
+        pid_ns: str | None = os.readlink(_OWN_PID_NAMESPACE)
+    except OSError:
+        pid_ns = None
+    return RunOwner(
+        host=socket.gethostname(),
+        pid=pid,
+        boot_id=_read_text(_BOOT_ID),
+        start_time=None if me is None else me.start_time,
+        pid_ns=pid_ns,
+    )
+
+
+def why_gone(owner: RunOwner, here: RunOwner, probe: ProcessProbe) -> str | None:
+    """Why the process ``owner`` names has provably ended, seen from ``here``; else None.
+
+    Only proof counts: finishing a run whose station is still measuring would
+    make it unrecordable (finished runs are final). So another host (whose
+    processes this machine cannot see; a WAL database is only shared on one
+    machine, so that is a copied file), an unknown boot, another pid namespace
+    or a pid whose start time cannot be compared all leave the run open.
+    """
+    if owner.host != here.host or owner.boot_id is None or here.boot_id is None:
+        return None
+    if owner.boot_id != here.boot_id:
+        return "the machine has restarted since"
+    if owner.pid_ns is None or owner.pid_ns != here.pid_ns:
+        return None
+    info = probe(owner.pid)
+    if info is None:
+        return "the process no longer exists"
+    if info.ended:
+        # Whoever holds the pid has ended: the owner, or a later process after the owner.
+        return "the process has exited"
+    if (owner.start_time is not None and info.start_time is not None
+            and info.start_time != owner.start_time):
+        return "its pid now belongs to another process"
+    return None
+
+
+@dataclass(frozen=True)
+class InterruptedRun:
+    """An open run whose station process was found gone, and finished as aborted."""
+
+    run_id: int
+    serial: str
+    owner: RunOwner
+    reason: str
+
+
+def interrupted_reason(owner: RunOwner, why: str, found_at_run: int) -> str:
+    """The reason an interrupted run is finished with: who, where, how it was found."""
+    return (
+        f"interrupted: station process {owner.pid} on host {owner.host} ended without "
+        f"finishing the run ({why}; found at the start of run {found_at_run})"
+    )
+
+
+# -- the store ----------------------------------------------------------------------
+
+# sqlite3 primary result codes that mean "this path cannot hold a database here",
+# as opposed to "this file is damaged" (NOTADB, CORRUPT), a station fault.
+_PATH_ERRORS = frozenset({
+    sqlite3.SQLITE_CANTOPEN, sqlite3.SQLITE_READONLY, sqlite3.SQLITE_PERM, sqlite3.SQLITE_AUTH,
+})
+
+
 class Store:
     """An open results database; close it (or use ``with``) to release the file.
 
     ``migrations`` replaces the shipped ``db`` package as the schema source, so
-    tests can feed broken or future migrations.
+    tests can feed broken or future migrations. ``owner`` and ``probe`` replace
+    this process and this machine's process table in the interrupted-run check,
+    so tests can play other processes, hosts and boots.
     """
 
-    def __init__(self, path: Path, *, migrations: Traversable | None = None) -> None:
+    def __init__(
+        self,
+        path: Path,
+        *,
+        migrations: Traversable | None = None,
+        owner: RunOwner | None = None,
+        probe: ProcessProbe = probe_process,
+    ) -> None:
         self.path = Path(path)
         self._conn: sqlite3.Connection | None = None
+        self._owner = owner
+        self._probe = probe
+        self.interrupted: list[InterruptedRun] = []
+        """Runs this store found interrupted and finished as aborted, oldest first."""
         known = load_migrations(migrations if migrations is not None else files(MIGRATIONS_PACKAGE))
+        self._check_path()
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
             # isolation_level=None: the store, not the sqlite3 module, opens transactions.
             conn = sqlite3.connect(self.path, isolation_level=None, timeout=BUSY_TIMEOUT_MS / 1000)
-        except (OSError, sqlite3.Error) as exc:
-            raise self._error("cannot open", exc) from exc
+        except sqlite3.Error as exc:
+            raise self._open_error(exc) from exc
         try:
             self._prepare(conn, known)
         except BaseException:
@@ -261,7 +489,10 @@ class Store:
         """Record that ``run`` started, with the exact recipe text; set ``run.run_id``.
 
         Committed before returning: if the station dies during the motion, the
-        row (verdict NULL) is what tells the next shift a run never finished.
+        row (verdict NULL, its owner this process) is what tells the next shift
+        a run never finished. In the same transaction, open runs whose owner
+        process is provably gone are finished as ``aborted`` (see ``why_gone``);
+        they are logged, and kept in ``self.interrupted``.
         """
         if run.run_id is not None:
             raise ValueError(f"run of {run.serial} already begun as run {run.run_id}")
@@ -279,28 +510,61 @@ class Store:
             "text": recipe_text,
             "first_used_at": utc_iso(run.started_at),
         }
+        owner = self._owner if self._owner is not None else current_owner()
+        # Not held(): a stop arriving during this transaction rolls it back to nothing begun.
         with self._transaction(f"begin a run of {run.serial}", write=True) as conn:
+            # Judged before this run exists, under the write lock, so no other station
+            # can begin or finish a run in between.
+            gone = self._gone_owners(conn, owner)
             conn.execute(_INSERT_RECIPE, recipe)
-            run_id = conn.execute(_INSERT_RUN, _start_values(run)).lastrowid
-        if run_id is None:  # pragma: no cover - sqlite3 always sets it after an INSERT
-            raise self._error("begin a run", None)
+            run_id = conn.execute(
+                _INSERT_RUN, {**_start_values(run), "owner": owner.to_json()}
+            ).lastrowid
+            if run_id is None:  # pragma: no cover - sqlite3 always sets it after an INSERT
+                raise self._error("begin a run", None)
+            finished_at = utc_iso(datetime.now(UTC))
+            interrupted = []
+            for open_id, serial, open_owner, why in gone:
+                reason = interrupted_reason(open_owner, why, run_id)
+                conn.execute(_FINISH_INTERRUPTED, {
+                    "run_id": open_id, "verdict": Verdict.ABORTED.value, "reason": reason,
+                    "finished_at": finished_at,
+                })
+                interrupted.append(InterruptedRun(open_id, serial, open_owner, reason))
+        for found in interrupted:
+            log.warning("run %d of %s marked aborted: %s", found.run_id, found.serial,
+                        found.reason)
+        self.interrupted.extend(interrupted)
         run.run_id = run_id
         return run_id
 
     def finish_run(self, run: Run) -> None:
-        """Write everything the run learnt, and replace its limit checks, atomically."""
+        """Write everything the run learnt, and its limit checks, atomically and once.
+
+        A finished run is final: finishing it again is refused by the
+        database's triggers (``DatabaseError``), so a record QA has seen never
+        changes behind its back. Hence a verdict and a finishing time are
+        required; a run that is still going has nothing to finish.
+        """
         if run.run_id is None:
             raise ValueError(f"run of {run.serial} was never begun")
+        if run.verdict is None or run.finished_at is None:
+            raise ValueError(
+                f"run {run.run_id}: a run is finished with its verdict and finishing time"
+            )
         names = [check.name for check in run.limits]
         if len(set(names)) != len(names):
             raise ValueError(f"run {run.run_id}: a limit is checked twice in {names}")
         values = _result_values(run)
         limits = [_limit_values(run.run_id, i, check) for i, check in enumerate(run.limits)]
-        with self._transaction(f"finish run {run.run_id}", write=True) as conn:
-            if conn.execute(_UPDATE_RESULTS, values).rowcount != 1:
+        # held(): a stop signal arriving now waits for the commit, so the run is recorded whole.
+        with held(), self._transaction(f"finish run {run.run_id}", write=True) as conn:
+            exists = conn.execute("SELECT 1 FROM runs WHERE run_id = ?", (run.run_id,))
+            if exists.fetchone() is None:
                 raise InputError(f"no run {run.run_id} in database {self.path}")
-            conn.execute("DELETE FROM limit_checks WHERE run_id = ?", (run.run_id,))
+            # Limit checks first: the triggers admit them only while the run is open.
             conn.executemany(_INSERT_LIMIT, limits)
+            conn.execute(_UPDATE_RESULTS, values)
 
     def get_run(self, run_id: int) -> Run:
         runs = self._runs(f"read run {run_id}", "WHERE run_id = ?", (run_id,))
@@ -346,6 +610,15 @@ class Store:
         )
         return runs[0] if runs else None
 
+    def open_run_owner(self, run_id: int) -> RunOwner | None:
+        """Who began ``run_id`` and has not finished it; None once finished or if unknown."""
+        with self._transaction(f"read the owner of run {run_id}") as conn:
+            row = conn.execute("SELECT verdict, owner FROM runs WHERE run_id = ?",
+                               (run_id,)).fetchone()
+        if row is None:
+            raise InputError(f"no run {run_id} in database {self.path}")
+        return None if row["verdict"] is not None else RunOwner.from_json(row["owner"])
+
     def recipe_text(self, sha256: str) -> str | None:
         with self._transaction(f"read recipe {sha256}") as conn:
             row = conn.execute("SELECT text FROM recipes WHERE sha256 = ?", (sha256,)).fetchone()
@@ -365,7 +638,8 @@ class Store:
             "recorded_run_id": v.recorded_run_id,
             **_trim_values("recorded", v.recorded_trims),
         }
-        with self._transaction(f"record a verification of {v.serial}", write=True) as conn:
+        with held(), self._transaction(f"record a verification of {v.serial}",
+                                       write=True) as conn:
             verification_id = conn.execute(_INSERT_VERIFICATION, values).lastrowid
         if verification_id is None:  # pragma: no cover - always set after an INSERT
             raise self._error("record a verification", None)
@@ -398,6 +672,74 @@ class Store:
     def _error(self, doing: str, exc: BaseException | None) -> DatabaseError:
         return DatabaseError(str(self.path), doing if exc is None else f"{doing}: {exc}")
 
+    def _path_error(self, problem: str) -> DatabasePathError:
+        return DatabasePathError(str(self.path), f"cannot hold the results database: {problem}")
+
+    def _open_error(self, exc: sqlite3.Error) -> DatabaseError:
+        """Opening failed: the path's fault (exit 2) or the file's (exit 3).
+
+        SQLite cannot open or write there (permissions, read-only file or
+        medium): the operator named a place that cannot hold a database. The
+        file is there but is not a database, or is damaged: that is the
+        station's data in trouble, for a technician, and the file is left
+        untouched (never "repaired" by recreating it).
+        """
+        code = getattr(exc, "sqlite_errorcode", None)
+        if isinstance(code, int) and code & 0xFF in _PATH_ERRORS:
+            return self._path_error(str(exc))
+        return self._error("cannot open", exc)
+
+    def _check_path(self) -> None:
+        """Refuse, before SQLite creates anything, a path that cannot hold the database.
+
+        SQLite's own message for all of these is "unable to open database
+        file", which names neither the path nor the problem. The database's
+        folder must be writable even when the file exists, because SQLite keeps
+        the ``-wal`` and ``-shm`` files beside it.
+        """
+        path, folder = self.path, self.path.parent
+        try:
+            if path.is_dir():
+                raise self._path_error("it is a directory")
+            if folder.exists() and not folder.is_dir():
+                raise self._path_error(f"{folder} is a file, not a directory")
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise self._path_error(
+                    f"cannot create its directory {folder}: {exc.strerror or exc}"
+                ) from exc
+            if not os.access(folder, os.W_OK | os.X_OK):
+                raise self._path_error(
+                    f"directory {folder} is not writable (SQLite keeps the -wal and -shm "
+                    "files beside the database)"
+                )
+            if path.exists():
+                if not path.is_file():
+                    raise self._path_error("it is not a regular file")
+                if not os.access(path, os.R_OK | os.W_OK):
+                    raise self._path_error("the file is not readable and writable")
+        except OSError as exc:  # stat itself refused, e.g. a folder that cannot be searched
+            raise self._path_error(exc.strerror or str(exc)) from exc
+
+    def _gone_owners(
+        self, conn: sqlite3.Connection, here: RunOwner
+    ) -> list[tuple[int, str, RunOwner, str]]:
+        """The open runs whose owner process is provably gone: (run_id, serial, owner, why).
+
+        Open runs without an owner (begun before migration 0002) are left
+        alone: nothing proves their station stopped.
+        """
+        gone = []
+        for row in conn.execute(_SELECT_OPEN_RUNS).fetchall():
+            owner = RunOwner.from_json(row["owner"])
+            if owner is None:
+                continue
+            why = why_gone(owner, here, self._probe)
+            if why is not None:
+                gone.append((int(row["run_id"]), str(row["serial"]), owner, why))
+        return gone
+
     def _prepare(self, conn: sqlite3.Connection, known: Sequence[Migration]) -> None:
         conn.row_factory = sqlite3.Row
         newest = known[-1].number if known else 0
@@ -413,9 +755,15 @@ class Store:
                     f"({newest}); refusing it, install the newer station software",
                     None,
                 )
-            conn.execute("PRAGMA journal_mode = WAL").fetchone()
+            # WAL: QA reads while a station writes, and a killed station leaves the file whole.
+            mode = str(conn.execute("PRAGMA journal_mode = WAL").fetchone()[0])
         except sqlite3.Error as exc:
-            raise self._error("cannot open", exc) from exc
+            raise self._open_error(exc) from exc
+        if mode.lower() != "wal":
+            # SQLite keeps the old mode when it cannot switch (read-only medium, a file it
+            # may not write): without WAL, readers would meet "database is locked".
+            raise self._path_error(f"SQLite cannot use its write-ahead log there "
+                                   f"(journal mode stays {mode!r})")
         for migration in known:
             if migration.number > version:
                 version = self._apply(conn, migration)

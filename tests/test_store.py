@@ -9,10 +9,15 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
+import re
 import sqlite3
+import subprocess
+import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
-from dataclasses import fields, replace
+from dataclasses import dataclass, fields, replace
 from datetime import UTC, datetime, timedelta, timezone
 from importlib.resources import files
 from pathlib import Path
@@ -20,9 +25,29 @@ from pathlib import Path
 import pytest
 
 from station.core import Trims
-from station.errors import DatabaseError, ExitCode, InputError
-from station.runs import LimitCheck, LimitName, RecipeRef, Ripple, Run, RunKind, Verdict
-from station.store import MIGRATIONS_PACKAGE, RunFilter, Store, VerificationRecord, load_migrations
+from station.errors import DatabaseError, DatabasePathError, ExitCode, InputError
+from station.runs import (
+    LimitCheck,
+    LimitName,
+    RecipeRef,
+    Ripple,
+    Run,
+    RunKind,
+    Verdict,
+    utc_iso,
+)
+from station.store import (
+    MIGRATIONS_PACKAGE,
+    ProcessInfo,
+    RunFilter,
+    RunOwner,
+    Store,
+    VerificationRecord,
+    current_owner,
+    load_migrations,
+    probe_process,
+    why_gone,
+)
 
 T0 = datetime(2025, 3, 1, 8, 0, 0, 123456, tzinfo=UTC)
 
@@ -65,6 +90,14 @@ def _record(store: Store, run: Run, verdict: Verdict = Verdict.PASS, *, stored: 
     run.verdict = verdict
     run.finished_at = run.started_at + timedelta(seconds=93.5)
     run.trims_stored = stored
+    store.finish_run(run)
+    return run
+
+
+def _finish(store: Store, run: Run, verdict: Verdict = Verdict.PASS) -> Run:
+    """Finish an open run with whatever it learnt so far; a finish needs a verdict and time."""
+    run.verdict = verdict
+    run.finished_at = run.started_at + timedelta(seconds=42)
     store.finish_run(run)
     return run
 
@@ -301,6 +334,7 @@ def test_begun_run_is_kept_open_until_finished_even_across_a_crash(db_path: Path
         assert found.verdict is None
         run.verdict = Verdict.ERROR
         run.reason = "station restarted during the run"
+        run.finished_at = T0 + timedelta(hours=1)
         store.finish_run(run)
         assert store.history(run.serial)[0].verdict is Verdict.ERROR
 
@@ -335,6 +369,7 @@ def test_unknown_run_is_an_input_error(store: Store) -> None:
             store.get_run(99)
         ghost = _run()
         ghost.run_id = 99
+        ghost.verdict, ghost.finished_at = Verdict.PASS, T0
         with pytest.raises(InputError, match="no run 99"):
             store.finish_run(ghost)
 
@@ -343,7 +378,7 @@ def test_nan_estimate_comes_back_as_nan_not_as_missing_trims(store: Store) -> No
     with store:
         run = _begin(store, _run())
         run.trims_estimated = Trims(math.nan, 1.0, 10000.0, 10000.0)
-        store.finish_run(run)
+        _finish(store, run)
         assert run.run_id is not None
         back = store.get_run(run.run_id).trims_estimated
         assert back is not None
@@ -373,22 +408,51 @@ def test_limit_checks_round_trip_in_order_including_not_applied(store: Store) ->
     with store:
         run = _begin(store, _run())
         run.limits = checks
-        store.finish_run(run)
+        _finish(store, run)
         assert run.run_id is not None
         back = store.get_run(run.run_id)
         assert back.limits == checks
         assert back.failed_limits == (checks[2],)
 
 
-def test_finishing_again_replaces_the_limit_checks(store: Store) -> None:
+@pytest.mark.parametrize(
+    ("second_limits", "refusal"),
+    [
+        ((), "a finished run (verdict set) cannot be changed"),
+        ((LimitCheck(LimitName.OFFSET_B, 9.0, -5.0, 5.0, "mA", False),),
+         "a finished run cannot be given more limit checks"),
+        # The same limit again: refused as a change to a finished run, not as a duplicate key.
+        ((LimitCheck(LimitName.OFFSET_A, 9.0, -5.0, 5.0, "mA", False),),
+         "a finished run cannot be given more limit checks"),
+    ],
+    ids=["verdict-only", "another-limit", "same-limit"],
+)
+def test_an_open_run_is_finished_once_and_then_never_again(
+    store: Store, db_path: Path, second_limits: tuple[LimitCheck, ...], refusal: str
+) -> None:
     with store:
         run = _begin(store, _run())
         run.limits = (LimitCheck(LimitName.OFFSET_A, 1.0, -5.0, 5.0, "mA", True),)
-        store.finish_run(run)
-        run.limits = (LimitCheck(LimitName.OFFSET_B, 9.0, -5.0, 5.0, "mA", False),)
-        store.finish_run(run)
+        _finish(store, run, Verdict.PASS)
+        first = replace(run, limits=run.limits, warnings=list(run.warnings))
+        run.verdict, run.reason, run.limits = Verdict.FAIL, "second thoughts", second_limits
+        with pytest.raises(DatabaseError, match=re.escape(refusal)) as error:
+            store.finish_run(run)
+        assert str(db_path) in str(error.value)
         assert run.run_id is not None
-        assert store.get_run(run.run_id).limits == run.limits
+        assert store.get_run(run.run_id) == first
+
+
+def test_finishing_needs_a_verdict_and_a_time(store: Store) -> None:
+    with store:
+        run = _begin(store, _run())
+        with pytest.raises(ValueError, match="verdict and finishing time"):
+            store.finish_run(run)
+        run.verdict = Verdict.PASS
+        with pytest.raises(ValueError, match="verdict and finishing time"):
+            store.finish_run(run)
+        assert run.run_id is not None
+        assert store.get_run(run.run_id).verdict is None
 
 
 def test_a_limit_checked_twice_is_refused_and_nothing_changes(store: Store) -> None:
@@ -396,7 +460,7 @@ def test_a_limit_checked_twice_is_refused_and_nothing_changes(store: Store) -> N
         run = _begin(store, _run())
         check = LimitCheck(LimitName.OFFSET_A, 1.0, -5.0, 5.0, "mA", True)
         run.limits = (check, check)
-        run.verdict = Verdict.PASS
+        run.verdict, run.finished_at = Verdict.PASS, T0
         with pytest.raises(ValueError, match="twice"):
             store.finish_run(run)
         assert run.run_id is not None
@@ -408,7 +472,7 @@ def test_limits_of_many_runs_each_go_to_their_own_run(store: Store) -> None:
         for i in range(30):
             run = _begin(store, _run(f"SN{i % 3}"))
             run.limits = (LimitCheck(LimitName.OFFSET_A, float(i), -50.0, 50.0, "mA", True),)
-            store.finish_run(run)
+            _finish(store, run)
         for run in store.query(RunFilter()):
             assert run.run_id is not None
             assert [check.value for check in run.limits] == [float(run.run_id - 1)]
@@ -545,3 +609,439 @@ def test_verifications_round_trip_per_unit_oldest_first(store: Store) -> None:
         assert store.verifications("SN1") == [found, unknown]
         assert store.verifications("SN2") == [other]
         assert store.verifications("SN3") == []
+
+
+# -- append-only ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Tamperable:
+    """A database holding one of everything a tamperer could reach for."""
+
+    finished: int
+    open: int
+    sha256: str
+
+
+def _tamperable(db_path: Path) -> _Tamperable:
+    with Store(db_path) as store:
+        finished = _begin(store, _run())
+        finished.limits = (LimitCheck(LimitName.OFFSET_A, 1.0, -5.0, 5.0, "mA", False),)
+        _finish(store, finished, Verdict.FAIL)
+        opened = _begin(store, _run("SN2"))
+        store.add_verification(VerificationRecord(
+            serial="SN1", verified_at=T0, station_id=1, operator="bob", bench="sim",
+            match=True, drive_trims=Trims(), recorded_run_id=finished.run_id,
+            recorded_trims=Trims(),
+        ))
+    assert finished.run_id is not None and opened.run_id is not None
+    return _Tamperable(finished.run_id, opened.run_id, finished.recipe.sha256)
+
+
+def _snapshot(path: Path) -> dict[str, list[tuple[object, ...]]]:
+    conn = _raw(path)
+    try:
+        return {
+            table: conn.execute(f"SELECT * FROM {table} ORDER BY 1, 2").fetchall()
+            for table in ("runs", "limit_checks", "verifications", "recipes")
+        }
+    finally:
+        conn.close()
+
+
+_TAMPERING = {
+    "change a finished run's verdict": (
+        "UPDATE runs SET verdict = 'pass' WHERE run_id = :finished",
+        "a finished run (verdict set) cannot be changed"),
+    "change every finished run's reason": (
+        "UPDATE runs SET reason = 'edited' WHERE verdict IS NOT NULL",
+        "a finished run (verdict set) cannot be changed"),
+    "reopen a finished run": (
+        "UPDATE runs SET verdict = NULL WHERE run_id = :finished",
+        "a finished run (verdict set) cannot be changed"),
+    "rename an open run's unit": (
+        "UPDATE runs SET serial = 'SN9' WHERE run_id = :open",
+        "what a run recorded when it began cannot be changed"),
+    "rewrite an open run's owner": (
+        "UPDATE runs SET owner = NULL WHERE run_id = :open",
+        "what a run recorded when it began cannot be changed"),
+    "delete a finished run": ("DELETE FROM runs WHERE run_id = :finished",
+                              "a run cannot be deleted"),
+    "delete an open run": ("DELETE FROM runs WHERE run_id = :open", "a run cannot be deleted"),
+    "replace a finished run": (
+        "INSERT OR REPLACE INTO runs SELECT * FROM runs WHERE run_id = :finished",
+        "a run cannot be replaced"),
+    "pass a failed limit": ("UPDATE limit_checks SET passed = 1",
+                            "a limit check cannot be changed"),
+    "delete a limit check": ("DELETE FROM limit_checks", "a limit check cannot be deleted"),
+    "replace a limit check": (
+        "INSERT OR REPLACE INTO limit_checks SELECT * FROM limit_checks",
+        "limit checks are append-only"),  # of a finished run: two triggers refuse it
+    "add a limit check to a finished run": (
+        "INSERT INTO limit_checks (run_id, name, position, unit) "
+        "VALUES (:finished, 'gain_a', 5, '')",
+        "a finished run cannot be given more limit checks"),
+    "change a verification": ("UPDATE verifications SET trims_match = 0",
+                              "a verification cannot be changed"),
+    "delete a verification": ("DELETE FROM verifications", "a verification cannot be deleted"),
+    "replace a verification": (
+        "INSERT OR REPLACE INTO verifications SELECT * FROM verifications",
+        "a verification cannot be replaced"),
+    "change a recipe text": ("UPDATE recipes SET text = 'max_h1 = 1e9' WHERE sha256 = :sha256",
+                             "a stored recipe text cannot be changed"),
+    "delete a recipe": ("DELETE FROM recipes", "a stored recipe text cannot be deleted"),
+}
+
+
+@pytest.mark.parametrize("what", list(_TAMPERING))
+def test_a_raw_connection_cannot_change_or_remove_what_was_recorded(
+    db_path: Path, what: str
+) -> None:
+    sql, refusal = _TAMPERING[what]
+    ids = _tamperable(db_path)
+    before = _snapshot(db_path)
+    conn = _raw(db_path)  # a technician's sqlite3 shell: no station code involved
+    try:
+        with pytest.raises(sqlite3.IntegrityError, match=re.escape(refusal)):
+            conn.execute(sql, {"finished": ids.finished, "open": ids.open,
+                               "sha256": ids.sha256})
+        conn.commit()
+    finally:
+        conn.close()
+    assert _snapshot(db_path) == before
+
+
+def test_replacing_a_stored_recipe_is_a_no_op_not_a_rewrite(db_path: Path) -> None:
+    ids = _tamperable(db_path)
+    before = _snapshot(db_path)
+    conn = _raw(db_path)
+    try:
+        conn.execute("INSERT OR REPLACE INTO recipes VALUES (?, 'x', '9', 'tampered', 'now')",
+                     (ids.sha256,))
+        conn.commit()
+    finally:
+        conn.close()
+    assert _snapshot(db_path) == before
+
+
+def test_a_raw_connection_may_finish_an_open_run_once(db_path: Path) -> None:
+    ids = _tamperable(db_path)
+    conn = _raw(db_path)
+    try:
+        conn.execute("UPDATE runs SET verdict = 'error', finished_at = ? WHERE run_id = ?",
+                     (utc_iso(T0), ids.open))
+        conn.commit()
+        with pytest.raises(sqlite3.IntegrityError, match="cannot be changed"):
+            conn.execute("UPDATE runs SET verdict = 'pass' WHERE run_id = ?", (ids.open,))
+    finally:
+        conn.close()
+    with Store(db_path) as store:
+        assert store.get_run(ids.open).verdict is Verdict.ERROR
+
+
+# -- interrupted runs -------------------------------------------------------------
+
+HOST = "line3-a"
+BOOT = "6f1c0f7e-0000-4000-8000-000000000001"
+NS = "pid:[4026531836]"
+DEAD_PID, LIVE_PID, REUSED_PID, ZOMBIE_PID, STATION_PID = 1111, 2222, 3333, 4444, 9999
+
+
+def _owner(pid: int, *, host: str = HOST, boot: str | None = BOOT, start: int | None = 500,
+           ns: str | None = NS) -> RunOwner:
+    return RunOwner(host=host, pid=pid, boot_id=boot, start_time=start, pid_ns=ns)
+
+
+HERE = _owner(STATION_PID, start=900)
+
+
+def _process_table(pid: int) -> ProcessInfo | None:
+    """This machine, as the tests play it: which of the owners' pids still run."""
+    return {
+        LIVE_PID: ProcessInfo(start_time=500),
+        REUSED_PID: ProcessInfo(start_time=777),  # the pid now names a later process
+        ZOMBIE_PID: ProcessInfo(start_time=500, ended=True),
+        STATION_PID: ProcessInfo(start_time=900),
+    }.get(pid)
+
+
+@pytest.mark.parametrize(
+    ("owner", "why"),
+    [
+        (_owner(DEAD_PID), "the process no longer exists"),
+        (_owner(REUSED_PID), "its pid now belongs to another process"),
+        (_owner(ZOMBIE_PID), "the process has exited"),
+        (_owner(LIVE_PID, boot="an-earlier-boot"), "the machine has restarted since"),
+        # Rebooted: even a pid that happens to run again proves nothing about the old one.
+        (_owner(DEAD_PID, boot="an-earlier-boot", ns="pid:[1]"), "the machine has restarted"),
+        (_owner(LIVE_PID), None),
+        (_owner(LIVE_PID, start=None), None),  # its start time was never known: no proof
+        (_owner(STATION_PID, start=900), None),  # this very process
+        (_owner(DEAD_PID, host="line3-b"), None),  # another machine's processes are unseen
+        (_owner(DEAD_PID, host="line3-b", boot="an-earlier-boot"), None),
+        (_owner(DEAD_PID, boot=None), None),  # no boot id: a reboot cannot be ruled out
+        (_owner(DEAD_PID, ns="pid:[4026532000]"), None),  # another container's pids
+        (_owner(DEAD_PID, ns=None), None),
+    ],
+    ids=["dead", "pid-reused", "zombie", "rebooted", "rebooted-other-ns", "alive",
+         "alive-start-unknown", "this-process", "other-host", "other-host-other-boot",
+         "no-boot-id", "other-pid-namespace", "unknown-pid-namespace"],
+)
+def test_an_owner_is_gone_only_when_provably_so(owner: RunOwner, why: str | None) -> None:
+    found = why_gone(owner, HERE, _process_table)
+    if why is None:
+        assert found is None
+    else:
+        assert found is not None and found.startswith(why)
+
+
+def test_this_machine_sees_a_live_process_a_dead_one_and_a_zombie() -> None:
+    me = current_owner()
+    assert me.pid == os.getpid() and me.host
+    if me.boot_id is None or me.start_time is None:
+        pytest.skip("not Linux: no boot id or process start time to judge by")
+    assert why_gone(me, me, probe_process) is None
+    info = probe_process(me.pid)
+    assert info is not None and info.start_time == me.start_time and not info.ended
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child_owner = replace(me, pid=child.pid, start_time=None)
+    deadline = time.monotonic() + 10
+    while (info := probe_process(child.pid)) is not None and not info.ended:
+        assert time.monotonic() < deadline, "the child never exited"
+        time.sleep(0.01)
+    # Exited but not reaped: still in the process table, yet it can write nothing more.
+    assert why_gone(child_owner, me, probe_process) == "the process has exited"
+    child.wait()
+    assert probe_process(child.pid) is None
+    assert why_gone(child_owner, me, probe_process) == "the process no longer exists"
+
+
+def _open_runs(db_path: Path, owners: dict[str, RunOwner]) -> dict[str, int]:
+    """One open run per serial, each as the process ``owners`` names left it.
+
+    Written behind the store's back: each of those processes, beginning its
+    run through a store, would already have judged the others' runs.
+    """
+    ref, text = _recipe()
+    Store(db_path).close()
+    conn = _raw(db_path)
+    ids: dict[str, int] = {}
+    try:
+        conn.execute("INSERT OR IGNORE INTO recipes VALUES (?, 'default', '1.0', ?, ?)",
+                     (ref.sha256, text, utc_iso(T0)))
+        for serial, owner in owners.items():
+            cursor = conn.execute(
+                "INSERT INTO runs (serial, kind, recipe_name, recipe_version, recipe_sha256, "
+                "station_id, operator, software_version, bench, started_at, owner) "
+                "VALUES (?, 'calibrate', 'default', '1.0', ?, 1, 'alice', '0.1.0', 'sim', ?, ?)",
+                (serial, ref.sha256, utc_iso(T0), owner.to_json()),
+            )
+            assert cursor.lastrowid is not None
+            ids[serial] = cursor.lastrowid
+        conn.commit()
+    finally:
+        conn.close()
+    return ids
+
+
+def test_the_next_run_finishes_runs_whose_station_is_gone_and_no_other(
+    db_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    owners = {
+        "SN1": _owner(DEAD_PID),
+        "SN2": _owner(LIVE_PID),
+        "SN3": _owner(DEAD_PID, host="line3-b"),
+        "SN4": _owner(DEAD_PID + 1, boot="an-earlier-boot"),
+        "SN5": _owner(REUSED_PID),
+        "SN6": _owner(STATION_PID, start=900),  # this process's own open run
+    }
+    ids = _open_runs(db_path, owners)
+    with Store(db_path, owner=HERE, probe=_process_table) as store:
+        new = _begin(store, _run("SN7"))
+        assert new.run_id is not None
+        marked = {found.serial: found for found in store.interrupted}
+        assert set(marked) == {"SN1", "SN4", "SN5"}
+        for serial, found in marked.items():
+            run = store.get_run(ids[serial])
+            assert run.verdict is Verdict.ABORTED and run.finished_at is not None
+            assert run.reason == found.reason
+            owner = owners[serial]
+            assert owner is not None
+            assert run.reason.startswith(
+                f"interrupted: station process {owner.pid} on host {HOST} ended without "
+                "finishing the run (")
+            assert run.reason.endswith(f"found at the start of run {new.run_id})")
+            assert store.open_run_owner(ids[serial]) is None
+        assert "the machine has restarted since" in marked["SN4"].reason
+        assert "its pid now belongs to another process" in marked["SN5"].reason
+        for serial in ("SN2", "SN3", "SN6"):
+            assert store.get_run(ids[serial]).verdict is None
+            assert store.open_run_owner(ids[serial]) == owners[serial]
+        assert store.open_run_owner(new.run_id) == HERE
+        # A later start finds nothing more to do: the rest may still be running.
+        _begin(store, _run("SN8"))
+        assert len(store.interrupted) == 3
+    warnings = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert sum("marked aborted: interrupted" in w for w in warnings) == 3
+
+
+def test_an_open_run_finished_as_interrupted_cannot_be_finished_again(db_path: Path) -> None:
+    (run_id,) = _open_runs(db_path, {"SN1": _owner(DEAD_PID)}).values()
+    with Store(db_path, owner=HERE, probe=_process_table) as store:
+        _begin(store, _run("SN2"))
+        late = store.get_run(run_id)
+        late.verdict, late.reason = Verdict.PASS, "the old process came back?"
+        late.finished_at = T0
+        with pytest.raises(DatabaseError, match="append-only"):
+            store.finish_run(late)
+        assert store.get_run(run_id).verdict is Verdict.ABORTED
+
+
+def test_an_unreadable_owner_leaves_the_run_open(db_path: Path) -> None:
+    assert RunOwner.from_json("{not json") is None
+    assert RunOwner.from_json('["host", 1]') is None
+    assert RunOwner.from_json('{"host": "h", "pid": "12"}') is None
+    assert RunOwner.from_json(None) is None
+    owner = _owner(DEAD_PID)
+    assert RunOwner.from_json(owner.to_json()) == owner
+
+
+# -- migration 0002 on a database already in use ---------------------------------------
+
+
+def _version_1(tmp_path: Path) -> Path:
+    """The shipped schema as it stood at version 1 (0001 only)."""
+    first = load_migrations(files(MIGRATIONS_PACKAGE))[0]
+    return _write_migrations(tmp_path / "v1", {first.name: first.sql})
+
+
+def test_migration_0002_keeps_every_row_and_protects_the_old_ones(
+    tmp_path: Path, db_path: Path
+) -> None:
+    Store(db_path, migrations=_version_1(tmp_path)).close()
+    assert _user_version(db_path) == 1
+    ref, text = _recipe()
+    conn = _raw(db_path)  # software of version 1 wrote these rows
+    try:
+        conn.execute("INSERT INTO recipes VALUES (?, 'default', '1.0', ?, 'then')",
+                     (ref.sha256, text))
+        for serial, verdict in (("SN1", "pass"), ("SN2", None)):
+            conn.execute(
+                "INSERT INTO runs (serial, kind, recipe_name, recipe_version, recipe_sha256, "
+                "station_id, operator, software_version, bench, started_at, verdict) "
+                "VALUES (?, 'calibrate', 'default', '1.0', ?, 1, 'alice', '0.0.9', 'sim', ?, ?)",
+                (serial, ref.sha256, utc_iso(T0), verdict),
+            )
+        conn.execute("INSERT INTO limit_checks (run_id, name, position, unit, passed) "
+                     "VALUES (1, 'offset_a_mA', 0, 'mA', 1)")
+        conn.commit()
+    finally:
+        conn.close()
+    before = _snapshot(db_path)
+
+    with Store(db_path, owner=HERE, probe=_process_table) as store:
+        assert store.schema_version == 2
+        (old_pass,) = store.history("SN1")
+        assert old_pass.verdict is Verdict.PASS and len(old_pass.limits) == 1
+        # The open run of version 1 has no owner: nothing proves its station stopped.
+        _begin(store, _run("SN3"))
+        assert store.interrupted == []
+        assert store.history("SN2")[0].verdict is None
+        assert store.open_run_owner(2) is None
+    after = _snapshot(db_path)
+    assert [row[:-1] for row in after["runs"][:2]] == before["runs"]  # owner column added
+    assert [row[-1] for row in after["runs"][:2]] == [None, None]
+    assert {k: v for k, v in after.items() if k != "runs"} == {
+        k: v for k, v in before.items() if k != "runs"}
+    conn = _raw(db_path)
+    try:
+        with pytest.raises(sqlite3.IntegrityError, match="append-only"):
+            conn.execute("DELETE FROM runs WHERE run_id = 1")
+    finally:
+        conn.close()
+
+
+# -- queries cannot be turned into SQL ---------------------------------------------------
+
+_INJECTIONS = [
+    "x' OR '1'='1",
+    "'; DROP TABLE runs; --",
+    "SN1' --",
+    '" OR ""="',
+    "%",
+    "SN1'; DELETE FROM runs WHERE '1'='1",
+]
+
+
+@pytest.mark.parametrize("text", _INJECTIONS)
+def test_query_filters_are_values_never_sql(store: Store, db_path: Path, text: str) -> None:
+    with store:
+        runs = _populate(store)
+        assert store.query(RunFilter(serial=text)) == []
+        assert store.query(RunFilter(recipe=text)) == []
+        assert store.history(text) == []
+        assert store.last_stored(text) is None
+        assert store.verifications(text) == []
+        assert store.recipe_text(text) is None
+        assert [run.run_id for run in store.query(RunFilter())] == [r.run_id for r in runs]
+    assert {"runs", "recipes", "limit_checks", "verifications"} <= _tables(db_path)
+
+
+# -- paths that cannot hold a database ----------------------------------------------------
+
+
+def _unprivileged() -> bool:
+    """Root (with its capabilities) writes through any permission bits."""
+    return os.geteuid() != 0
+
+
+def test_a_directory_is_refused_as_a_database_path(tmp_path: Path) -> None:
+    with pytest.raises(DatabasePathError, match="is a directory") as error:
+        Store(tmp_path)
+    assert str(tmp_path) in str(error.value)
+    assert error.value.exit_code is ExitCode.USAGE
+
+
+def test_a_file_where_the_folder_should_be_is_refused(tmp_path: Path) -> None:
+    blocker = tmp_path / "results"
+    blocker.write_text("not a folder")
+    for path in (blocker / "station.db", blocker / "deeper" / "station.db"):
+        with pytest.raises(DatabasePathError) as error:
+            Store(path)
+        assert str(path) in str(error.value)
+        assert error.value.exit_code is ExitCode.USAGE
+    assert blocker.read_text() == "not a folder"
+
+
+@pytest.mark.skipif(not _unprivileged(), reason="root writes through permission bits")
+def test_a_read_only_folder_or_file_is_refused(tmp_path: Path) -> None:
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    Store(folder / "existing.db").close()
+    folder.chmod(0o555)
+    try:
+        for name in ("new.db", "existing.db"):
+            with pytest.raises(DatabasePathError, match="not writable") as error:
+                Store(folder / name)
+            assert str(folder / name) in str(error.value)
+        assert not (folder / "new.db").exists()
+    finally:
+        folder.chmod(0o755)
+    readonly = tmp_path / "readonly.db"
+    Store(readonly).close()
+    readonly.chmod(0o444)
+    with pytest.raises(DatabasePathError, match="not readable and writable"):
+        Store(readonly)
+
+
+def test_a_corrupt_database_is_a_station_error_and_is_left_untouched(tmp_path: Path) -> None:
+    path = tmp_path / "station.db"
+    garbage = b"SQLite format 2\x00" + bytes(range(256)) * 16
+    path.write_bytes(garbage)
+    with pytest.raises(DatabaseError) as error:
+        Store(path)
+    assert not isinstance(error.value, DatabasePathError)
+    assert error.value.exit_code is ExitCode.STATION
+    assert str(path) in str(error.value)
+    assert path.read_bytes() == garbage
