@@ -233,6 +233,10 @@ class _Calibration:
             with self.session.listening(writer, capture):
                 self._identify(metadata)
                 self._calibrate()
+                if not self.run_record.trims_stored:
+                    # A unit failed before its trims were written keeps its own: the
+                    # sweep's last point must not stay in its RAM.
+                    self._restore()
         except BaseException:
             self._restore()
             raise
