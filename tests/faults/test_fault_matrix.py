@@ -208,3 +208,18 @@ def test_faults_in_a_bench_file_are_read_strictly() -> None:
     assert "sim.faults[0].kind: must be one of" in message
     assert "sim.faults[1].count: means nothing for power_cycle" in message
     assert "sim.faults[1].when: unknown key" in message
+
+
+def test_a_unit_failed_before_its_trims_are_written_keeps_its_own_in_ram_too(
+    tmp_path: Path, benches_closed: list[SimBench],
+) -> None:
+    default = (Path(__file__).parents[2] / "recipes" / "default.toml").read_text("utf-8")
+    narrow = tmp_path / "narrow.toml"
+    narrow.write_text(default.replace('name = "default"', 'name = "narrow"').replace(
+        "offset_bound_mA = ", "offset_bound_mA = 20.0 #"), encoding="utf-8")
+    db = tmp_path / "station.db"
+    run = calibrate(Station(db, SIM_SPEC, "tester"), SERIAL, str(narrow)).run
+    (bench,) = benches_closed
+    assert run.verdict is Verdict.FAIL and not run.trims_stored
+    _assert_safe(run, bench, db)
+    assert bench.at_close is not None and bench.at_close.ram_trims == NOMINAL_TRIMS
