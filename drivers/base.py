@@ -8,17 +8,23 @@ normally or by an exception, disables the drive; closing twice is harmless.
 
 from __future__ import annotations
 
+import logging
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from types import TracebackType
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
 from station.core import Trims
-from station.errors import InputError
+from station.errors import DeviceTimeout, InputError
+
+log = logging.getLogger(__name__)
+_T = TypeVar("_T")
 
 LIVENESS_TIMEOUT_S = 1.0
 """How long a device may say nothing before it counts as gone: ten of ICD.md's 100 ms
@@ -30,6 +36,26 @@ REQUEST_RETRIES = 2
 every object the station writes: each holds an absolute value (trims, set-points, a
 controlword command, the 'save' signature), so repeating a request the device did
 act on, whose answer was lost, changes nothing; none is a counter or a toggle."""
+
+
+def retried(send: Callable[[], _T], *, device: str, what: str,
+            unanswered: type[Exception] | tuple[type[Exception], ...]) -> _T:
+    """``send()``, sent again up to ``REQUEST_RETRIES`` times (logged) while unanswered.
+
+    Only ``unanswered`` is retried: a refusal is the device's answer, and asking
+    again would only hear it again. The last silence is a ``DeviceTimeout``
+    naming ``device`` and ``what`` was asked.
+    """
+    for attempt in range(REQUEST_RETRIES + 1):
+        try:
+            return send()
+        except unanswered as exc:
+            if attempt == REQUEST_RETRIES:
+                raise DeviceTimeout(device, f"{what}: no answer to {REQUEST_RETRIES + 1} "
+                                    f"attempts ({exc})") from exc
+            log.warning("%s: %s unanswered, sending it again (retry %d of %d)",
+                        device, what, attempt + 1, REQUEST_RETRIES)
+    raise AssertionError("unreachable")
 
 class DriveState(Enum):
     """CiA 402 power state machine states, decoded from the statusword."""

@@ -32,7 +32,7 @@ import canopen
 from canopen.objectdictionary import ObjectDictionaryError, ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from drivers.base import REQUEST_RETRIES, DeviceIdentity
+from drivers.base import DeviceIdentity, retried
 from drivers.cia301 import (
     ABORT_MEANINGS,
     NMT_COB_ID,
@@ -789,24 +789,14 @@ class SdoChannel:
             raise DeviceError(self._device, f"{where}: not connected ({exc})") from exc
 
     def _retried(self, index: int, subindex: int, transfer: Callable[[], _T]) -> _T:
-        """``transfer``, sent again (bounded by ``REQUEST_RETRIES``, logged) when unanswered.
+        """``transfer``, sent again (``drivers.base.retried``) while it times out."""
 
-        Only timeouts are retried: an abort is the device's answer, and asking
-        again would only hear it again.
-        """
-        for attempt in range(REQUEST_RETRIES + 1):
-            try:
-                with self._errors(index, subindex):
-                    return transfer()
-            except DeviceTimeout as exc:
-                if attempt == REQUEST_RETRIES:
-                    raise DeviceTimeout(
-                        self._device, f"{self._where(index, subindex)}: no answer to "
-                        f"{REQUEST_RETRIES + 1} attempts ({exc})") from exc
-                log.warning("%s: %s unanswered, sending it again (retry %d of %d)",
-                            self._device, self._where(index, subindex), attempt + 1,
-                            REQUEST_RETRIES)
-        raise AssertionError("unreachable")
+        def once() -> _T:
+            with self._errors(index, subindex):
+                return transfer()
+
+        return retried(once, device=self._device, what=self._where(index, subindex),
+                       unanswered=DeviceTimeout)
 
     def read(self, index: int, subindex: int = 0) -> int | float:
         variable = self._variable(index, subindex)

@@ -24,14 +24,15 @@ from dataclasses import dataclass
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException as PymodbusError
+from pymodbus.pdu import ModbusPDU
 
 from drivers.base import (
     LIVENESS_TIMEOUT_S,
-    REQUEST_RETRIES,
     CalibrationRecord,
     DeviceIdentity,
     Drive,
     DriveState,
+    retried,
 )
 from drivers.cia402 import StateMachine
 from drivers.modbus_map import (
@@ -136,7 +137,7 @@ class ModbusDrive(Drive):
                  count: int = 0, values: list[int] | None = None) -> list[int]:
         """One request under the lock; the answer's registers, or a station error.
 
-        An unanswered request is sent again (``REQUEST_RETRIES`` times, logged), for
+        An unanswered request is sent again (``drivers.base.retried``, logged), for
         the reason SDOs are: every register the station writes holds an absolute
         value, so repeating a request the drive did act on changes nothing.
         """
@@ -144,30 +145,21 @@ class ModbusDrive(Drive):
             if self._closed:
                 raise DeviceError(self.name, "the Modbus connection is closed")
             unit = self.endpoint.unit
-            for attempt in range(REQUEST_RETRIES + 1):
-                try:
-                    if function is ModbusFunction.READ_HOLDING_REGISTERS:
-                        response = self._client.read_holding_registers(address, count=count,
-                                                                       device_id=unit)
-                    elif function is ModbusFunction.WRITE_SINGLE_REGISTER:
-                        assert values is not None and len(values) == 1
-                        response = self._client.write_register(address, values[0],
-                                                               device_id=unit)
-                    else:
-                        assert values is not None
-                        response = self._client.write_registers(address, values,
+
+            def once() -> ModbusPDU:
+                if function is ModbusFunction.READ_HOLDING_REGISTERS:
+                    return self._client.read_holding_registers(address, count=count,
                                                                 device_id=unit)
-                    break
-                except PymodbusError as exc:
-                    if attempt == REQUEST_RETRIES:
-                        raise DeviceTimeout(
-                            self.name, f"no answer from {self._where(function, address)} "
-                            f"to {REQUEST_RETRIES + 1} attempts of {self.endpoint.timeout_s} s "
-                            f"({exc})"
-                        ) from exc
-                    log.warning("%s: %s unanswered, sending it again (retry %d of %d)",
-                                self.name, self._where(function, address), attempt + 1,
-                                REQUEST_RETRIES)
+                assert values is not None
+                if function is ModbusFunction.WRITE_SINGLE_REGISTER:
+                    return self._client.write_register(address, values[0], device_id=unit)
+                return self._client.write_registers(address, values, device_id=unit)
+
+            response = retried(
+                once, device=self.name,
+                what=f"{self._where(function, address)} (timeout {self.endpoint.timeout_s} s)",
+                unanswered=PymodbusError,
+            )
             self._last_answer = time.monotonic()
         if response.isError():
             code = int(getattr(response, "exception_code", 0))
