@@ -43,11 +43,10 @@ from typing import ClassVar
 from bench.record import BenchRecord, Goal
 from station import benches
 from station.benches import SIM_SPEC, SimSettings
-from station.core import NOMINAL_TRIMS
 from station.paths import HOME_ENV
 from station.runs import Run, Verdict
 from station.service import Station, calibrate
-from station.sim.bench import SimBench
+from station.sim.bench import SimBench, TrimsLeft
 from station.sim.faults import Fault, FaultKind
 from station.store import RunFilter, Store
 
@@ -177,11 +176,11 @@ def _judge(run: Run, bench: SimBench | None, db: Path, tally: Tally) -> list[str
     if end.enabled:
         tally.left_enabled += 1
         flags.append("LEFT-ENABLED")
-    expected = last.trims_after if last is not None else NOMINAL_TRIMS
-    if end.stored_trims != expected:
+    left = end.trims_against(last.trims_after if last is not None else None)
+    if left is TrimsLeft.EEPROM_DIFFERS:
         tally.trims_differing += 1
         flags.append("EEPROM-DIFFERS")
-    elif end.ram_trims != end.stored_trims:
+    elif left is TrimsLeft.RAM_DIFFERS:
         if any("could not restore" in w for w in run.warnings):
             tally.unreachable += 1
             flags.append("(unreachable: RAM not restored)")

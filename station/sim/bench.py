@@ -20,6 +20,7 @@ import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 from pathlib import Path
 from types import TracebackType
 
@@ -30,7 +31,7 @@ from drivers.base import DriveState, decode_statusword
 from drivers.canbus import DEFAULT_CHANNEL, VIRTUAL_INTERFACE
 from drivers.cia301 import SYNC_COB_ID
 from drivers.modbus_map import DEFAULT_UNIT_ID, ModbusLink
-from station.core import Effect, LoadKind, Trims
+from station.core import NOMINAL_TRIMS, Effect, LoadKind, Trims
 from station.paths import sim_state_dir
 from station.physics.params import UnitParams, derive_unit
 from station.physics.plant import Plant
@@ -77,6 +78,23 @@ class DriveSnapshot:
     @property
     def enabled(self) -> bool:
         return self.state is DriveState.OPERATION_ENABLED
+
+    def trims_against(self, last_stored: Trims | None) -> TrimsLeft:
+        """The trims left against the last calibration stored in the unit (None: factory)."""
+        if self.stored_trims != (last_stored if last_stored is not None else NOMINAL_TRIMS):
+            return TrimsLeft.EEPROM_DIFFERS
+        if self.ram_trims != self.stored_trims:
+            return TrimsLeft.RAM_DIFFERS
+        return TrimsLeft.AS_STORED
+
+
+class TrimsLeft(Enum):
+    """How a drive's trims compare with its last stored calibration, checked EEPROM first:
+    the EEPROM is what every later power-up runs with."""
+
+    AS_STORED = "as stored"
+    EEPROM_DIFFERS = "EEPROM differs"
+    RAM_DIFFERS = "RAM differs"
 
 
 class SimBench:
