@@ -36,6 +36,10 @@ class Effect(StrEnum):
     CURRENT_LOOP_LAG = "current_loop_lag"
     FRICTION = "friction"
     SENSOR_CLOCK_DRIFT = "sensor_clock_drift"
+    # Appended, never inserted: a unit's concealed effects are drawn one per
+    # member in this order, so existing serials keep the effects they had.
+    MAGNETIC_SATURATION = "magnetic_saturation"
+    ROTOR_ECCENTRICITY = "rotor_eccentricity"
 
 
 class Axis(StrEnum):

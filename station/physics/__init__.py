@@ -8,6 +8,7 @@ from ``optimal_trims`` on the same plant.
 from station.core import Axis
 from station.physics.motor import (
     DetentHarmonic,
+    Eccentricity,
     FluxHarmonic,
     MotorParams,
     inductance_matrix,
@@ -15,6 +16,7 @@ from station.physics.motor import (
     magnetic_stiffness,
     mutual_inductances,
     ripple_harmonic_magnitudes,
+    saturation_current_for_drop,
     torque,
     torque_closed_form,
     torque_components,
@@ -31,6 +33,7 @@ from station.physics.params import (
     MechanicsParams,
     SensorParams,
     UnitParams,
+    UnnamedEffect,
     derive_unit,
 )
 from station.physics.plant import (
@@ -42,6 +45,7 @@ from station.physics.plant import (
     build_chain,
     commanded_currents_A,
     modal_analysis,
+    substeps_for,
 )
 
 __all__ = [
@@ -54,6 +58,7 @@ __all__ = [
     "DetentHarmonic",
     "DiskParams",
     "DriveCommand",
+    "Eccentricity",
     "FluxHarmonic",
     "FrictionParams",
     "LumpedFriction",
@@ -63,6 +68,7 @@ __all__ = [
     "Plant",
     "SensorParams",
     "UnitParams",
+    "UnnamedEffect",
     "build_chain",
     "commanded_currents_A",
     "derive_unit",
@@ -73,8 +79,10 @@ __all__ = [
     "mutual_inductances",
     "optimal_trims",
     "ripple_harmonic_magnitudes",
+    "saturation_current_for_drop",
     "settle_time_s",
     "steady_harmonics",
+    "substeps_for",
     "torque",
     "torque_closed_form",
     "torque_components",

@@ -12,6 +12,13 @@ carries its own amplitude and phase per harmonic.
 Units are SI throughout: currents in A, inductances in H, angles in rad
 (mechanical unless named electrical), torque in N·m.
 
+Two effects reshape that torque without changing L(θ)'s form (see
+``MotorParams.saturation_factor`` and ``Eccentricity``): the magnet torque
+falls with the stator current as the iron saturates, and an eccentric rotor's
+airgap torque varies once per mechanical revolution. They make τ no longer the
+co-energy derivative of a fixed L(θ), so ``torque`` and ``torque_components``
+apply them to eq. (3)'s parts explicitly.
+
 Eq. (18) as printed, |τ2| = Kt·¼·|I11 − I21|, disagrees by a factor of two with
 eq. (16) from which it is derived; the magnitude that eq. (16) (and eq. (1))
 actually produce is Kt·½·|I11 − I21|, and that is what is implemented here.
@@ -62,12 +69,54 @@ class DetentHarmonic:
 
 
 @dataclass(frozen=True)
+class Eccentricity:
+    """A rotor that is not centred in the stator bore (``rotor_eccentricity``).
+
+    The airgap is narrowest at one point of the rotor's circumference, so the
+    permeance through which every torque crosses the gap (magnet, reluctance,
+    detent) varies once per mechanical revolution: the airgap torque is
+    multiplied by 1 + relative·cos(θ + phase_rad), θ the rotor's mechanical
+    angle (not N_r·θ). The rotor's mass centre is off the axis with it, so
+    gravity adds a load −unbalance_Nm·sin(θ + unbalance_phase_rad) on the
+    rotor; that is a load, not motor torque, and only the plant applies it.
+    """
+
+    relative: float
+    phase_rad: float
+    unbalance_Nm: float = 0.0
+    unbalance_phase_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.relative < 1.0:
+            raise ValueError(f"eccentricity {self.relative} is not a fraction of the airgap")
+        if self.unbalance_Nm < 0:
+            raise ValueError("the unbalance torque is a magnitude (>= 0)")
+
+    def modulation(self, theta: ArrayLike) -> FloatArray:
+        """1 + relative·cos(θ + phase_rad): the airgap torque's factor at rotor angle θ."""
+        th = np.asarray(theta, dtype=np.float64)
+        return np.asarray(1.0 + self.relative * np.cos(th + self.phase_rad), dtype=np.float64)
+
+
+def saturation_current_for_drop(rated_A: float, drop: float) -> float:
+    """I_s that makes the torque constant ``drop`` (a fraction) lower at ``rated_A``.
+
+    From 1/√(1 + (I/I_s)²) = 1 − drop (see ``MotorParams.saturation_factor``).
+    """
+    if rated_A <= 0 or not 0.0 < drop < 1.0:
+        raise ValueError("need a positive rated current and a drop in (0, 1)")
+    return rated_A / math.sqrt(1.0 / (1.0 - drop) ** 2 - 1.0)
+
+
+@dataclass(frozen=True)
 class MotorParams:
     """Electromagnetic constants of one motor, eq. (4)-(9), plus its rotor inertia.
 
     ``L1_H`` is the reluctance variation of eq. (4)-(6) (zero under assumption
     (10)); ``flux_a``/``flux_b`` hold the harmonics j ≥ 2 of L1f/L2f (empty under
     (10)); ``detent`` holds the L_ff harmonics of eq. (9).
+    ``saturation_current_A`` is I_s of ``saturation_factor`` (``None``: the
+    iron never saturates); ``eccentricity`` is ``None`` for a centred rotor.
     """
 
     rotor_teeth: int = 50
@@ -81,12 +130,35 @@ class MotorParams:
     Lf0_H: float = 0.05
     detent: tuple[DetentHarmonic, ...] = ()
     rotor_inertia_kgm2: float = 6.0e-6
+    saturation_current_A: float | None = None
+    eccentricity: Eccentricity | None = None
 
     def __post_init__(self) -> None:
         if self.rotor_teeth < 1:
             raise ValueError("a motor needs at least one rotor tooth")
         if self.field_current_A <= 0 or self.Lm1_H <= 0 or self.rotor_inertia_kgm2 <= 0:
             raise ValueError("field current, Lm1 and rotor inertia must be positive")
+        if self.saturation_current_A is not None and self.saturation_current_A <= 0:
+            raise ValueError("the saturation current must be positive")
+
+    def saturation_factor(self, current_A: ArrayLike) -> FloatArray:
+        """g(|i|) = 1/√(1 + (|i|/I_s)²), the magnet torque's factor (``magnetic_saturation``).
+
+        The stator's MMF drives the teeth's iron towards saturation, so the
+        flux the magnet torque rides on grows less than in proportion to the
+        current vector's magnitude |i| = √(i_A² + i_B²), whatever its
+        direction. This law is smooth and even in the currents, 1 at zero
+        current, and keeps g·|i| rising towards I_s like a magnetisation
+        curve instead of falling back (as 1/(1 + (|i|/I_s)²) would beyond
+        I_s). It scales everything proportional to the phase currents through
+        L1f/L2f: Kt's fundamental and the flux harmonics, not reluctance or
+        detent. 1 exactly without saturation.
+        """
+        i = np.asarray(current_A, dtype=np.float64)
+        if self.saturation_current_A is None:
+            return np.ones_like(i)
+        x = i / self.saturation_current_A
+        return np.asarray(1.0 / np.sqrt(1.0 + x * x), dtype=np.float64)
 
     @property
     def kt_Nm_per_A(self) -> float:
@@ -94,8 +166,17 @@ class MotorParams:
         return self.field_current_A * self.Lm1_H * self.rotor_teeth
 
     def holding_torque_Nm(self, amplitude_A: float) -> float:
-        """Peak of the static torque curve Kt·I sin ρ of eq. (14)."""
+        """Peak of the static torque curve Kt·I sin ρ of eq. (14).
+
+        The paper's, at the low-current Kt: effects are sized against it, so
+        saturation (``saturation_factor``) is left out.
+        """
         return self.kt_Nm_per_A * amplitude_A
+
+    @property
+    def reshapes_torque(self) -> bool:
+        """Whether saturation or eccentricity take τ beyond eq. (1) of a fixed L(θ)."""
+        return self.saturation_current_A is not None or self.eccentricity is not None
 
 
 def _angles(theta: ArrayLike) -> FloatArray:
@@ -187,11 +268,40 @@ def _quadratic_form(matrix: FloatArray, theta: FloatArray, i_a: ArrayLike, i_b: 
     return np.asarray(0.5 * np.einsum("...i,...ij,...j->...", i, m, i), dtype=np.float64)
 
 
+def _components(d: FloatArray, theta: FloatArray, i_a: ArrayLike, i_b: ArrayLike,
+                motor: MotorParams) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Eq. (3)'s parts from ∂L/∂θ, with saturation on τ_pm and eccentricity on all three."""
+    ia = np.asarray(i_a, dtype=np.float64)
+    ib = np.asarray(i_b, dtype=np.float64)
+    i_f = motor.field_current_A
+    pm = d[..., 0, 2] * ia * i_f + d[..., 1, 2] * ib * i_f
+    vr = 0.5 * d[..., 0, 0] * ia**2 + 0.5 * d[..., 1, 1] * ib**2 + d[..., 0, 1] * ia * ib
+    cg = np.broadcast_to(0.5 * d[..., 2, 2] * i_f**2, np.shape(pm))
+    if motor.saturation_current_A is not None:
+        pm = pm * motor.saturation_factor(np.sqrt(ia * ia + ib * ib))
+    if motor.eccentricity is not None:
+        m = motor.eccentricity.modulation(theta)
+        pm, vr, cg = pm * m, vr * m, cg * m
+    return (np.asarray(pm, dtype=np.float64), np.asarray(vr, dtype=np.float64),
+            np.asarray(cg, dtype=np.float64))
+
+
+def _torque_from_derivative(d: FloatArray, theta: FloatArray, i_a: ArrayLike, i_b: ArrayLike,
+                            motor: MotorParams) -> FloatArray:
+    if not motor.reshapes_torque:
+        return _quadratic_form(d, theta, i_a, i_b, motor.field_current_A)
+    pm, vr, cg = _components(d, theta, i_a, i_b, motor)
+    return np.asarray(pm + vr + cg, dtype=np.float64)
+
+
 def torque(theta: ArrayLike, i_a: ArrayLike, i_b: ArrayLike, motor: MotorParams) -> FloatArray:
-    """Eq. (1): τ = ½ iᵀ ∂L/∂θ i with i = [i_a, i_b, i_f], analytic derivative."""
+    """Eq. (1): τ = ½ iᵀ ∂L/∂θ i with i = [i_a, i_b, i_f], analytic derivative.
+
+    With saturation or eccentricity, τ = m(θ)·(g(|i|)·τ_pm + τ_vr + τ_cg) (see
+    ``MotorParams.saturation_factor`` and ``Eccentricity``).
+    """
     th = _angles(theta)
-    return _quadratic_form(inductance_matrix_derivative(th, motor), th, i_a, i_b,
-                           motor.field_current_A)
+    return _torque_from_derivative(inductance_matrix_derivative(th, motor), th, i_a, i_b, motor)
 
 
 def torque_numerical(theta: ArrayLike, i_a: ArrayLike, i_b: ArrayLike, motor: MotorParams, *,
@@ -201,22 +311,17 @@ def torque_numerical(theta: ArrayLike, i_a: ArrayLike, i_b: ArrayLike, motor: Mo
     d_l = (inductance_matrix(th + step_rad, motor) - inductance_matrix(th - step_rad, motor)) / (
         2 * step_rad
     )
-    return _quadratic_form(d_l, th, i_a, i_b, motor.field_current_A)
+    return _torque_from_derivative(d_l, th, i_a, i_b, motor)
 
 
 def torque_components(theta: ArrayLike, i_a: ArrayLike, i_b: ArrayLike,
                       motor: MotorParams) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Eq. (3): magnet (τ_pm), reluctance (τ_vr) and cogging (τ_cg) torques."""
+    """Eq. (3): magnet (τ_pm), reluctance (τ_vr) and cogging (τ_cg) torques.
+
+    Saturation scales τ_pm, eccentricity all three, so they still add up to ``torque``.
+    """
     th = _angles(theta)
-    ia = np.asarray(i_a, dtype=np.float64)
-    ib = np.asarray(i_b, dtype=np.float64)
-    d = inductance_matrix_derivative(th, motor)
-    i_f = motor.field_current_A
-    pm = d[..., 0, 2] * ia * i_f + d[..., 1, 2] * ib * i_f
-    vr = 0.5 * d[..., 0, 0] * ia**2 + 0.5 * d[..., 1, 1] * ib**2 + d[..., 0, 1] * ia * ib
-    cg = np.broadcast_to(0.5 * d[..., 2, 2] * i_f**2, np.shape(pm))
-    return (np.asarray(pm, dtype=np.float64), np.asarray(vr, dtype=np.float64),
-            np.asarray(cg, dtype=np.float64))
+    return _components(inductance_matrix_derivative(th, motor), th, i_a, i_b, motor)
 
 
 def torque_closed_form(theta: ArrayLike, theta_u: ArrayLike, motor: MotorParams, *, I10: float,
@@ -259,8 +364,11 @@ def magnetic_stiffness(motor: MotorParams, amplitude_mA: float,
     magnet gives Kt·I·Nr·cos ρ (ρ the electrical load angle); the reluctance
     torque Nr·L1·I²·sin 2ρ adds 2·Nr²·L1·I²·cos 2ρ. Detent is left out: its
     stiffness depends on where the rotor is, not on ρ, and averages out in motion.
+    Saturation lowers the magnet's part by g(I) (|i| = I on balanced currents,
+    so g does not vary with θ); eccentricity averages out over a revolution.
     """
     current = amplitude_mA * 1e-3
     nr = motor.rotor_teeth
-    return (motor.kt_Nm_per_A * current * nr * math.cos(load_angle_rad)
+    magnet = motor.kt_Nm_per_A * float(motor.saturation_factor(current))
+    return (magnet * current * nr * math.cos(load_angle_rad)
             + 2.0 * nr * nr * motor.L1_H * current * current * math.cos(2.0 * load_angle_rad))

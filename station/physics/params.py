@@ -19,13 +19,19 @@ import hashlib
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, fields, is_dataclass
-from enum import Enum
+from enum import Enum, StrEnum
 from typing import Any
 
 import numpy as np
 
 from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Axis, Effect, LoadKind
-from station.physics.motor import DetentHarmonic, FluxHarmonic, MotorParams
+from station.physics.motor import (
+    DetentHarmonic,
+    Eccentricity,
+    FluxHarmonic,
+    MotorParams,
+    saturation_current_for_drop,
+)
 from station.serials import parse_serial
 
 __all__ = [
@@ -36,12 +42,14 @@ __all__ = [
     "CurrentHarmonic",
     "DetentHarmonic",
     "DiskParams",
+    "Eccentricity",
     "FluxHarmonic",
     "FrictionParams",
     "MechanicsParams",
     "MotorParams",
     "SensorParams",
     "UnitParams",
+    "UnnamedEffect",
     "derive_unit",
 ]
 
@@ -55,6 +63,19 @@ EFFECT_PROBABILITY = 0.2
 
 BELT_REDUCTION = 1.0 / 7.0
 """The paper's pan unit: N_G = 1/7 (load revolutions per motor revolution)."""
+
+
+class UnnamedEffect(StrEnum):
+    """Physics that no id of the effect vocabulary (``Effect``, CLI.md) describes.
+
+    A simulated unit may carry these so that a diagnosis can be tried on
+    what it has no name for: the honest answer is a located mismatch without
+    an id, never the nearest ``Effect``. Kept out of ``Effect`` on purpose,
+    so nothing can name them.
+    """
+
+    SENSOR_NONLINEARITY = "sensor_nonlinearity"
+    SENSOR_TILT = "sensor_tilt"
 
 
 @dataclass(frozen=True)
@@ -189,7 +210,13 @@ class MechanicsParams:
 
 @dataclass(frozen=True)
 class SensorParams:
-    """The MEMS sensor on the load: range, bandwidth, noise, fixture geometry, clock."""
+    """The MEMS sensor on the load: range, bandwidth, noise, fixture geometry, clock.
+
+    ``tilt_rad`` (``UnnamedEffect.SENSOR_TILT``) turns the element about the
+    fixture's axial axis; ``nonlinearity_c2``/``_c3`` (``SENSOR_NONLINEARITY``)
+    bend each axis's transfer to a + c2·a²/FS + c3·a³/FS², FS the full scale
+    in m/s². Zero for a sensor mounted square with a linear element.
+    """
 
     radius_m: float
     range_g: int = 2
@@ -202,6 +229,9 @@ class SensorParams:
     axial_axis: Axis = Axis.Z
     clock_drift_ppm: float = 0.0
     sample_phase: float = 0.0
+    tilt_rad: float = 0.0
+    nonlinearity_c2: float = 0.0
+    nonlinearity_c3: float = 0.0
 
     def __post_init__(self) -> None:
         if self.range_g not in SENSOR_RANGES_G:
@@ -212,6 +242,20 @@ class SensorParams:
             raise ValueError("radius and bandwidth must be positive, noise non-negative")
         if not 0.0 <= self.sample_phase < 1.0:
             raise ValueError("sample phase is a fraction of a sample period in [0, 1)")
+        if not abs(self.tilt_rad) < math.pi / 4:
+            raise ValueError("a sensor turned by 45° or more reads another axis, not a tilt")
+        if abs(self.nonlinearity_c2) + abs(self.nonlinearity_c3) >= 0.5:
+            raise ValueError("a nonlinearity of half the full scale is not a sensor")
+
+    @property
+    def unnamed_effects(self) -> frozenset[UnnamedEffect]:
+        """The out-of-vocabulary imperfections this sensor's constants switch on."""
+        present = set()
+        if self.tilt_rad != 0.0:
+            present.add(UnnamedEffect.SENSOR_TILT)
+        if self.nonlinearity_c2 != 0.0 or self.nonlinearity_c3 != 0.0:
+            present.add(UnnamedEffect.SENSOR_NONLINEARITY)
+        return frozenset(present)
 
     def noise_sigma_mps2(self) -> float:
         """σ of one sample: density times √(noise bandwidth) of the 2nd-order low-pass.
@@ -253,8 +297,18 @@ class UnitParams:
     def sensor_radius_m(self) -> float:
         return self.sensor.radius_m
 
+    @property
+    def unnamed_effects(self) -> frozenset[UnnamedEffect]:
+        """Physics on this unit that no vocabulary id describes (``UnnamedEffect``)."""
+        return self.sensor.unnamed_effects
+
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready truth: every constant, and each enabled effect with its own."""
+        """JSON-ready truth: every constant, and each enabled effect with its own.
+
+        ``out_of_vocabulary`` lists, apart from ``effects``, what no id may
+        name (``UnnamedEffect``), so a scorer can tell a missed effect from
+        an honest "unknown".
+        """
         out: dict[str, Any] = {
             "serial": self.serial,
             "serial_number": self.serial_number,
@@ -274,8 +328,24 @@ class UnitParams:
                 {"id": effect.value, "parameters": self._effect_parameters(effect)}
                 for effect in sorted(self.effects)
             ],
+            "out_of_vocabulary": [
+                {"id": unnamed.value, "parameters": self._unnamed_parameters(unnamed)}
+                for unnamed in sorted(self.unnamed_effects)
+            ],
         }
         return out
+
+    def _unnamed_parameters(self, unnamed: UnnamedEffect) -> dict[str, Any]:
+        s = self.sensor
+        match unnamed:
+            case UnnamedEffect.SENSOR_NONLINEARITY:
+                return {"c2": s.nonlinearity_c2, "c3": s.nonlinearity_c3,
+                        "deviation_at_full_scale": abs(s.nonlinearity_c2)
+                        + abs(s.nonlinearity_c3),
+                        "law": "a + c2*a^2/FS + c3*a^3/FS^2 per axis, FS = range_g*g0"}
+            case UnnamedEffect.SENSOR_TILT:
+                return {"tilt_rad": s.tilt_rad, "tilt_deg": math.degrees(s.tilt_rad),
+                        "law": "t' = cos(a)*t + sin(a)*r, r' = cos(a)*r - sin(a)*t"}
 
     def _effect_parameters(self, effect: Effect) -> dict[str, Any]:
         m, a, mech, s = self.motor, self.amplifier, self.mechanics, self.sensor
@@ -310,6 +380,17 @@ class UnitParams:
                 return _jsonable(mech.load_friction)  # type: ignore[no-any-return]
             case Effect.SENSOR_CLOCK_DRIFT:
                 return {"clock_drift_ppm": s.clock_drift_ppm, "sample_phase": s.sample_phase}
+            case Effect.MAGNETIC_SATURATION:
+                rated_A = self.rated_current_mA / 1000.0
+                return {"saturation_current_A": m.saturation_current_A,
+                        "kt_drop_at_rated": 1.0 - float(m.saturation_factor(rated_A)),
+                        "holding_torque_at_rated_Nm": m.holding_torque_Nm(rated_A)
+                        * float(m.saturation_factor(rated_A)),
+                        "law": "tau_pm * 1/sqrt(1 + (|i|/saturation_current_A)^2)"}
+            case Effect.ROTOR_ECCENTRICITY:
+                return {**_jsonable(m.eccentricity),
+                        "law": "airgap torque * (1 + relative*cos(theta + phase_rad)); "
+                               "rotor load -unbalance_Nm*sin(theta + unbalance_phase_rad)"}
 
 
 def _jsonable(value: Any) -> Any:
@@ -510,6 +591,34 @@ def _draw_coupling(label: str, downstream_inertia: float) -> CouplingParams:
     )
 
 
+SATURATION_DROP = (0.05, 0.20)
+"""Torque constant at rated current below its low-current value (fraction)."""
+ECCENTRICITY = (0.03, 0.10)
+"""Airgap torque modulation once per revolution (fraction)."""
+UNBALANCE = (0.001, 0.003)
+"""The eccentric rotor's gravity load, as a fraction of the holding torque.
+
+No more than the rotor bearing's Coulomb friction (and a real rotor's
+unbalance is smaller still): a disabled rotor then creeps towards its low
+point instead of swinging there, which the sensor would see at standstill.
+"""
+
+
+def draw_saturation(rng: np.random.Generator, rated_A: float) -> float:
+    """I_s for a torque constant 5-20 % low at rated current."""
+    return saturation_current_for_drop(rated_A, _u(rng, *SATURATION_DROP))
+
+
+def draw_eccentricity(rng: np.random.Generator, holding_Nm: float) -> Eccentricity:
+    """Eccentricity 3-10 %, anywhere round the rotor, and the unbalance that comes with it."""
+    return Eccentricity(
+        relative=_u(rng, *ECCENTRICITY),
+        phase_rad=_u(rng, 0.0, 2.0 * math.pi),
+        unbalance_Nm=_u(rng, *UNBALANCE) * holding_Nm,
+        unbalance_phase_rad=_u(rng, 0.0, 2.0 * math.pi),
+    )
+
+
 def _draw_clock(label: str) -> tuple[float, float]:
     rng = _stream(label, f"effect/{Effect.SENSOR_CLOCK_DRIFT.value}")
     return _u(rng, 100.0, 500.0) * _sign(rng), _u(rng, 0.0, 1.0)
@@ -544,6 +653,10 @@ def derive_unit(
     flux_a, flux_b = _draw_flux(label, motor.Lm1_H)
     detent = _draw_detent(label, motor, holding)
     l1 = _draw_reluctance(label, motor, rated_A)
+    saturation = draw_saturation(_stream(label, f"effect/{Effect.MAGNETIC_SATURATION.value}"),
+                                 rated_A)
+    eccentricity = draw_eccentricity(
+        _stream(label, f"effect/{Effect.ROTOR_ECCENTRICITY.value}"), holding)
     motor = MotorParams(
         rotor_teeth=motor.rotor_teeth,
         field_current_A=motor.field_current_A,
@@ -556,6 +669,8 @@ def derive_unit(
         Lf0_H=motor.Lf0_H,
         detent=detent if Effect.DETENT_TORQUE in chosen else (),
         rotor_inertia_kgm2=motor.rotor_inertia_kgm2,
+        saturation_current_A=saturation if Effect.MAGNETIC_SATURATION in chosen else None,
+        eccentricity=eccentricity if Effect.ROTOR_ECCENTRICITY in chosen else None,
     )
 
     amp = _draw_amplifier(label)

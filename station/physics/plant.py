@@ -16,6 +16,7 @@ from __future__ import annotations
 import cmath
 import hashlib
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -24,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import expm
 
 from station.core import (
+    GAIN_LIMITS,
     GAIN_UNITY,
     SATURATED_COUNTS,
     SENSOR_RANGES_G,
@@ -254,6 +256,25 @@ def _periodic_tables(terms: dict[int, list[complex]], slots: int) -> tuple[list[
     return tuple(tables)
 
 
+MAX_STEP_PHASE = 0.7
+"""ω·h of the chain's fastest mode per integration step, at most. Symplectic
+Euler keeps a mode stable below 2 and stretches its period by about (ω·h)²/24:
+2 % here, and only for modes far above the sensor's band."""
+
+
+def substeps_for(unit: UnitParams, sync_period_s: float, minimum: int) -> int:
+    """The fewest substeps per SYNC, at least ``minimum``, that integrate ``unit`` stably.
+
+    A stiff belt on a light rotor rings at kilohertz; at the usual 8 substeps
+    of a 1-ms SYNC it would blow up. The magnetic spring is taken at the
+    strongest current the trims allow (1.5 × rated), where the modes are highest.
+    """
+    current = unit.rated_current_mA * GAIN_LIMITS[1] / GAIN_UNITY
+    fastest = max((m.frequency_hz for m in modal_analysis(unit, current)), default=0.0)
+    needed = math.ceil(2.0 * math.pi * fastest * sync_period_s / MAX_STEP_PHASE)
+    return max(minimum, needed)
+
+
 def _noise_stream(unit: UnitParams, seed: int) -> np.random.Generator:
     if seed < 0:
         raise ValueError("seed must be >= 0")
@@ -262,7 +283,11 @@ def _noise_stream(unit: UnitParams, seed: int) -> np.random.Generator:
 
 
 class Plant:
-    """One unit on the bench: motor, load chain and sensor, in simulated time."""
+    """One unit on the bench: motor, load chain and sensor, in simulated time.
+
+    ``substeps`` is a minimum: a unit whose chain rings too fast for it gets
+    as many more as ``substeps_for`` says (see ``substeps``).
+    """
 
     def __init__(self, unit: UnitParams, *, sync_period_s: float = 0.001, substeps: int = 8,
                  seed: int = 0) -> None:
@@ -270,6 +295,7 @@ class Plant:
             raise ValueError("the SYNC period must be positive and substeps >= 1")
         self._unit = unit
         self._period = sync_period_s
+        substeps = substeps_for(unit, sync_period_s, substeps)
         self._substeps = substeps
         self._h = sync_period_s / substeps
         self._syncs = 0
@@ -281,6 +307,7 @@ class Plant:
         self._theta = [0.0] * n
         self._omega = [0.0] * n
         self._setup_torque(motor)
+        self._setup_reshaping(motor)
         self._setup_amplifier(unit.amplifier)
         self._setup_sensor(unit, seed)
         self._last_torque = 0.0
@@ -291,6 +318,8 @@ class Plant:
         """Torque beyond eq. (14) as i_A·F_A(θe) + i_B·F_B(θe) + F_D(θe), tabulated.
 
         Per order j the weights w make τ_j = Re[(i_A·w_A + i_B·w_B + w_D)·e^(i·j·θe)].
+        A saturating or eccentric motor keeps F_D in a table of its own, because
+        saturation scales the magnet's part and not the detent's.
         """
         nr, i_f = motor.rotor_teeth, motor.field_current_A
         terms: dict[int, list[complex]] = {}
@@ -304,10 +333,36 @@ class Plant:
         for h in motor.flux_b:
             phase = h.phase_rad - h.order * QUARTER_PITCH_ELECTRICAL
             add(h.order, 1, 1j * h.order * nr * h.amplitude_H * i_f * cmath.exp(1j * phase))
+        detent: dict[int, list[complex]] = {}
         for d in motor.detent:
-            add(d.order, 2, 0.5j * d.order * nr * d.amplitude_H * i_f * i_f)
+            coeff = 0.5j * d.order * nr * d.amplitude_H * i_f * i_f
+            if motor.reshapes_torque:
+                # Saturation must not scale detent: it gets its own table.
+                detent.setdefault(d.order, [0j])[0] += coeff
+            else:
+                add(d.order, 2, coeff)
         self._harmonics = _periodic_tables(terms, 3)
+        detent_table = _periodic_tables(detent, 1)
+        self._detent_alone = detent_table[0] if detent_table else ()
         self._reluctance = nr * motor.L1_H
+
+    def _setup_reshaping(self, motor: MotorParams) -> None:
+        """Saturation and eccentricity, as one tuple the loop unpacks only if there is one.
+
+        ``None`` for a motor without them: the loop then tests nothing it did
+        not test before they existed.
+        """
+        if not motor.reshapes_torque:
+            self._reshaping: tuple[Any, ...] | None = None
+            return
+        sat = motor.saturation_current_A
+        ecc = motor.eccentricity
+        self._reshaping = (
+            sat is not None, 1.0 / (sat * sat) if sat is not None else 0.0, self._detent_alone,
+            ecc is not None,
+            *((ecc.relative, ecc.phase_rad, ecc.unbalance_Nm, ecc.unbalance_phase_rad)
+              if ecc is not None else (0.0, 0.0, 0.0, 0.0)),
+        )
 
     def _setup_amplifier(self, amp: AmplifierParams) -> None:
         self._amp = amp
@@ -362,6 +417,15 @@ class Plant:
         self._drifting = drift != 0.0
         self._sample_period = self._period * (1.0 + drift)
         self._sample_phase = s.sample_phase
+        # Out-of-vocabulary imperfections of the sensor element (UnnamedEffect).
+        self._cos_tilt = math.cos(s.tilt_rad)
+        self._sin_tilt = math.sin(s.tilt_rad)
+        self._nonlinear_c = (s.nonlinearity_c2, s.nonlinearity_c3)
+        self._tilted = s.tilt_rad != 0.0
+        self._nonlinear = s.nonlinearity_c2 != 0.0 or s.nonlinearity_c3 != 0.0
+        # Chosen once, so that a square, linear element costs nothing per sample.
+        self._emitter: Callable[[float, float], None] = (
+            self._emit_through_element if self._tilted or self._nonlinear else self._emit)
         self.set_sensor_range(s.range_g)
         # Until the first SYNC the sensor holds a reading at rest: gravity only.
         at_rest = (0.0, 0.0, STANDARD_GRAVITY)
@@ -381,6 +445,11 @@ class Plant:
     @property
     def sync_period_s(self) -> float:
         return self._period
+
+    @property
+    def substeps(self) -> int:
+        """Integration steps per SYNC period actually taken (see ``substeps_for``)."""
+        return self._substeps
 
     @property
     def rotor_angle_rad(self) -> float:
@@ -420,6 +489,11 @@ class Plant:
         self._range_g = range_g
         self._lsb = range_g * STANDARD_GRAVITY / 32768.0
         self._inv_lsb = 1.0 / self._lsb
+        # The element's nonlinearity is a fraction of its full scale, whichever range is set.
+        full_scale = range_g * STANDARD_GRAVITY
+        c2, c3 = self._nonlinear_c
+        self._nl2 = c2 / full_scale
+        self._nl3 = c3 / (full_scale * full_scale)
 
     def sensor_lsb_mps2(self) -> float:
         return self._lsb
@@ -459,6 +533,8 @@ class Plant:
             (1 + amp.gain_error_a) * trims.gain_a + (1 + amp.gain_error_b) * trims.gain_b
         ) / GAIN_UNITY
         capacity = self._kt * amplitude if command.enabled else 0.0
+        if self._reshaping is not None:
+            capacity, needed = self._reshaped_balance(capacity, needed, amplitude, theta_u)
         rho = math.asin(max(-1.0, min(1.0, needed / capacity))) if capacity > 0 else 0.0
         thetas = [theta_u - rho / self._nr]
         for i, (k, _c, ratio) in enumerate(chain.springs):
@@ -473,6 +549,21 @@ class Plant:
             self._i_a = self._i_b = self._target_a = self._target_b = 0.0
         self._xf0 = self._xf1 = 0.0
         self._yf0, self._yf1 = -self._radius * omegas[-1] ** 2, 0.0
+
+    def _reshaped_balance(self, capacity: float, needed: float, amplitude_A: float,
+                          theta: float) -> tuple[float, float]:
+        """The magnet's peak torque and the load it must carry at rotor angle θ.
+
+        Saturation at |i| = I and the eccentric airgap there scale the peak;
+        the unbalance's gravity adds to the load.
+        """
+        motor = self._unit.motor
+        capacity *= float(motor.saturation_factor(amplitude_A))
+        ecc = motor.eccentricity
+        if ecc is not None:
+            capacity *= float(ecc.modulation(theta))
+            needed += ecc.unbalance_Nm * math.sin(theta + ecc.unbalance_phase_rad)
+        return capacity, needed
 
     def advance(self, command: DriveCommand) -> tuple[int, int, int]:
         """Advance one SYNC period; return the sensor's X, Y, Z counts sampled at the end
@@ -490,7 +581,7 @@ class Plant:
         self._yf0 = a00 * y0 + a01 * y1 + b0 * u
         self._yf1 = a10 * y0 + a11 * y1 + b1 * u
         if not self._drifting:
-            self._emit(self._xf0, self._yf0)
+            self._emitter(self._xf0, self._yf0)
             return self._counts
         t_end = self._syncs * self._period
         latest = math.floor(t_end / self._sample_period - self._sample_phase)
@@ -511,13 +602,13 @@ class Plant:
         frac = q - k
         tangential = xs[k] + (xs[k + 1] - xs[k]) * frac
         radial = y_start + (self._yf0 - y_start) * (into / self._period)
-        self._emit(tangential, radial)
+        self._emitter(tangential, radial)
         return self._counts
 
-    def _emit(self, tangential: float, radial: float) -> None:
+    def _emit(self, tangential: float, radial: float, axial: float = STANDARD_GRAVITY) -> None:
         """Turn the filtered tangential/radial values into the sensor's noisy counts."""
         slot = self._slot
-        values = (tangential, radial, STANDARD_GRAVITY)
+        values = (tangential, radial, axial)
         reading = (values[slot[0]], values[slot[1]], values[slot[2]])
         self._reading = reading
         if self._sigma > 0.0:
@@ -530,6 +621,31 @@ class Plant:
             reading = (reading[0] + noise[0][pos], reading[1] + noise[1][pos],
                        reading[2] + noise[2][pos])
         self._counts = self._quantise(reading)
+
+    def _emit_through_element(self, tangential: float, radial: float) -> None:
+        """``_emit`` for a sensor whose element is turned or nonlinear (``UnnamedEffect``)."""
+        values = self._element(tangential, radial)
+        self._emit(values[0], values[1], values[2])
+
+    def _element(self, tangential: float, radial: float) -> tuple[float, float, float]:
+        """What a turned, nonlinear sensing element makes of the fixture's accelerations.
+
+        Turned by α about the axial axis, its tangential axis reads
+        cos α·a_t + sin α·a_r and its radial axis cos α·a_r − sin α·a_t; then
+        each axis's transfer bends as a + c2·a²/FS + c3·a³/FS² (FS the full
+        scale in m/s²). Applied to the filtered values: the filter is linear
+        and the same on every axis, and the signal lies well inside its band.
+        """
+        values = (tangential, radial, STANDARD_GRAVITY)
+        if self._tilted:
+            c, s = self._cos_tilt, self._sin_tilt
+            values = (c * tangential + s * radial, c * radial - s * tangential, STANDARD_GRAVITY)
+        if self._nonlinear:
+            k2, k3 = self._nl2, self._nl3
+            values = (values[0] + (k2 + k3 * values[0]) * values[0] * values[0],
+                      values[1] + (k2 + k3 * values[1]) * values[1] * values[1],
+                      values[2] + (k2 + k3 * values[2]) * values[2] * values[2])
+        return values
 
     def _quantise(self, values: tuple[float, float, float]) -> tuple[int, int, int]:
         inv = self._inv_lsb
@@ -558,7 +674,8 @@ class Plant:
             fl.coulomb_pos > 0.0 or fl.coulomb_neg > 0.0,
             chain.inertias[0], chain.inertias[1] if ndof == 3 else 1.0, chain.inertias[-1],
             k1, c1, n1, k2, c2, n2, self._radius / self._h, self._steps, *self._lp_period,
-            self._drifting,
+            self._drifting, self._reluctance != 0.0 or self._reshaping is not None,
+            self._reshaping,
         )
 
     def _integrate(self, command: DriveCommand) -> None:
@@ -570,13 +687,17 @@ class Plant:
         linearised implicitly: the tanh's steep slope near zero speed would
         otherwise make an explicit step unstable.
         """
-        sin, cos, tanh = math.sin, math.cos, math.tanh
+        sin, cos, tanh, sqrt = math.sin, math.cos, math.tanh, math.sqrt
         floor = math.floor
         tsize = TABLE_SIZE
         tscale = TABLE_SIZE / (2.0 * math.pi)
         (h, nr, kt, harmonics, rel, distortion, lagged, la0, la1, la2, lb0, lb1, lb2,
          ndof, cv0, cp0, cn0, iw0, cvl, cpl, cnl, iwl, coulomb_l, j0, j1, jl,
-         k1, c1, n1, k2, c2, n2, r_over_h, steps, p00, p01, p10, p11, drifting) = self._const
+         k1, c1, n1, k2, c2, n2, r_over_h, steps, p00, p01, p10, p11, drifting,
+         beyond, reshaping) = self._const
+        if reshaping is not None:
+            (saturating, inv_isat2, cg_tab, eccentric, ecc, ecc_phase, unb,
+             unb_phase) = reshaping
         enabled = command.enabled
         kx = 2.0 * math.pi / (4.0 * command.microsteps_per_fullstep)
         # The drive commands its currents from its integer position demand (the
@@ -610,7 +731,7 @@ class Plant:
         om1 = om[1] if ndof == 3 else 0.0
         acc0 = acc1 = 0.0
         ubuf: list[float] = []
-        tau = 0.0
+        tau = tau_em = 0.0
         for t, w0, w1 in steps:
             # Drive: phase currents from the position demand at this instant.
             if enabled:
@@ -652,9 +773,32 @@ class Plant:
                 tau += i_b * (g + (fb_tab[kt_ + 1] - g) * fr)
                 g = fd_tab[kt_]
                 tau += g + (fd_tab[kt_ + 1] - g) * fr
-            if rel:
-                tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
-                              - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
+            if beyond:
+                if reshaping is None:
+                    tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
+                                  - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
+                else:
+                    # τ is the magnet's so far (detent has its own table here):
+                    # m(θ)·(g(|i|)·τ_pm + τ_cg + τ_vr), then the unbalance's load
+                    # (motor.py). ``tau`` drives the rotor, ``tau_em`` is reported.
+                    if saturating:
+                        tau /= sqrt(1.0 + (i_a * i_a + i_b * i_b) * inv_isat2)
+                    if cg_tab:
+                        q = te * tscale
+                        kf = floor(q)
+                        fr = q - kf
+                        kt_ = kf % tsize
+                        g = cg_tab[kt_]
+                        tau += g + (cg_tab[kt_ + 1] - g) * fr
+                    if rel:
+                        tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
+                                      - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
+                    if eccentric:
+                        tau *= 1.0 + ecc * cos(th0 + ecc_phase)
+                        tau_em = tau
+                        tau -= unb * sin(th0 + unb_phase)
+                    else:
+                        tau_em = tau
             # Mechanics: friction implicit (linearised), springs explicit.
             tf = tanh(om0 * iw0)
             cc = cp0 if om0 >= 0.0 else cn0
@@ -710,4 +854,4 @@ class Plant:
         self._u_substeps = ubuf
         self._i_a, self._i_b = i_a, i_b
         self._target_a, self._target_b = (t_a, t_b) if lagged else (i_a, i_b)
-        self._last_torque = tau
+        self._last_torque = tau if reshaping is None else tau_em

@@ -1,0 +1,406 @@
+"""A population of simulated units drawn over wide ranges, from a seed.
+
+Serial-derived units (``derive_unit``) spread like one product line: the same
+motor within tolerance, one disk, the paper's belt. A diagnosis tuned on them
+could pass by knowing those constants rather than by reading the recording.
+These units differ as different products would: motor size, inertias, gear
+ratio, belt stiffness, sensor, and every effect over the whole range where it
+is still plausible and large enough to show on a 1 A, 6-40 Hz
+characterization. They can also carry physics the vocabulary has no id for
+(``UnnamedEffect``), to check that a diagnosis says "unknown" rather than the
+nearest name.
+
+Each group of constants draws from its own child of ``SeedSequence(seed)``
+(``_Group``, append-only), and every effect's constants are drawn whether or
+not it is on, so switching one effect changes that effect only and adding a
+group later reshuffles nothing. Ranges spanning a factor of five or more are
+drawn log-uniform, so each decade is as likely.
+"""
+
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+
+import numpy as np
+
+from station.core import Effect, LoadKind
+from station.physics.motor import DetentHarmonic, FluxHarmonic, MotorParams
+from station.physics.params import (
+    AmplifierParams,
+    BeltParams,
+    CouplingParams,
+    CurrentHarmonic,
+    DiskParams,
+    FrictionParams,
+    MechanicsParams,
+    SensorParams,
+    UnitParams,
+    UnnamedEffect,
+    draw_eccentricity,
+    draw_saturation,
+)
+from station.serials import parse_serial
+
+__all__ = ["POPULATION_SERIAL_BASE", "belt_mode_motor_held_hz", "draw_unit"]
+
+POPULATION_SERIAL_BASE = 900000
+"""Population units are labelled SN900000-SN999999, apart from the serial-derived ones tests use."""
+
+RATED_CURRENT_mA = 1000
+MICROSTEPS = 256
+ROTOR_TEETH = 50
+FIELD_CURRENT_A = 10.0
+NOMINAL_ELECTRICAL_HZ = 20.0
+"""The speed friction's viscous part and smoothing are sized at, as in ``derive_unit``."""
+FLUX_RELATIVE = (0.002, 0.01)
+"""Each flux harmonic's amplitude relative to Lm1."""
+DISTORTION_RELATIVE = (0.003, 0.015)
+"""Each current harmonic relative to the fundamental."""
+
+
+class _Group(IntEnum):
+    """Spawn keys of the constants' streams: append only, never renumber."""
+
+    MOTOR = 0
+    AMPLIFIER = 1
+    DISK = 2
+    BELT = 3
+    BEARINGS = 4
+    SENSOR = 5
+    FLUX_HARMONICS = 6
+    DETENT_TORQUE = 7
+    RELUCTANCE_TORQUE = 8
+    LOAD_RESONANCE = 9
+    CURRENT_DISTORTION = 10
+    CURRENT_LOOP_LAG = 11
+    FRICTION = 12
+    SENSOR_CLOCK_DRIFT = 13
+    MAGNETIC_SATURATION = 14
+    ROTOR_ECCENTRICITY = 15
+    SENSOR_NONLINEARITY = 16
+    SENSOR_TILT = 17
+
+
+def _stream(seed: int, group: _Group) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(int(group),)))
+
+
+def _u(rng: np.random.Generator, low: float, high: float) -> float:
+    return float(rng.uniform(low, high))
+
+
+def _log_u(rng: np.random.Generator, low: float, high: float) -> float:
+    return float(math.exp(rng.uniform(math.log(low), math.log(high))))
+
+
+def _sign(rng: np.random.Generator) -> float:
+    return 1.0 if rng.random() < 0.5 else -1.0
+
+
+def belt_mode_motor_held_hz(belt: BeltParams) -> float:
+    """The load swinging on the belt with the motor held: √(k/J_load)/2π at the load shaft."""
+    return math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2.0 * math.pi)
+
+
+def _motor(seed: int) -> MotorParams:
+    rng = _stream(seed, _Group.MOTOR)
+    kt = _u(rng, 0.2, 0.6)
+    lm1 = kt / (FIELD_CURRENT_A * ROTOR_TEETH)
+    return MotorParams(
+        rotor_teeth=ROTOR_TEETH,
+        field_current_A=FIELD_CURRENT_A,
+        L0_H=_u(rng, 2.0e-3, 6.0e-3),
+        Lm0_H=0.25 * lm1,
+        Lm1_H=lm1,
+        Lf0_H=0.05,
+        rotor_inertia_kgm2=_log_u(rng, 3.0e-6, 1.5e-5),
+    )
+
+
+def _amplifier(seed: int) -> AmplifierParams:
+    rng = _stream(seed, _Group.AMPLIFIER)
+    return AmplifierParams(
+        offset_a_mA=_u(rng, -200.0, 200.0),
+        offset_b_mA=_u(rng, -200.0, 200.0),
+        gain_error_a=_u(rng, -0.10, 0.10),
+        gain_error_b=_u(rng, -0.10, 0.10),
+    )
+
+
+def _flux(seed: int, lm1: float) -> tuple[tuple[FluxHarmonic, ...], tuple[FluxHarmonic, ...]]:
+    """Either a symmetric motor (odd orders, phases alike) or one whose phases differ.
+
+    Alike phases with only odd orders leave the offsets' null at zero and show
+    only at higher ripple orders; even orders and unlike phases move the
+    nulls. A diagnosis must meet both.
+    """
+    rng = _stream(seed, _Group.FLUX_HARMONICS)
+    if rng.random() < 0.5:
+        same = tuple(FluxHarmonic(order, lm1 * _u(rng, *FLUX_RELATIVE),
+                                  _u(rng, 0.0, 2.0 * math.pi)) for order in (3, 5))
+        return same, same
+    phase_a: list[FluxHarmonic] = []
+    phase_b: list[FluxHarmonic] = []
+    low, high = FLUX_RELATIVE
+    for order in (2, 3, 4, 5):
+        # Common content, then each phase ±30 % of it: still within the range.
+        ratio = _u(rng, low / 0.7, high / 1.3)
+        phase = _u(rng, 0.0, 2.0 * math.pi)
+        for target in (phase_a, phase_b):
+            target.append(FluxHarmonic(order, lm1 * ratio * _u(rng, 0.7, 1.3),
+                                       phase + _u(rng, -0.3, 0.3)))
+    return tuple(phase_a), tuple(phase_b)
+
+
+def _detent(seed: int, motor: MotorParams, holding_Nm: float) -> tuple[DetentHarmonic, ...]:
+    rng = _stream(seed, _Group.DETENT_TORQUE)
+    nr, i_f = motor.rotor_teeth, motor.field_current_A
+    peak4 = _u(rng, 0.01, 0.04) * holding_Nm * _sign(rng)
+    peak8 = _u(rng, 0.1, 0.3) * abs(peak4) * _sign(rng)
+    # Peak of -½·Lfj·j·Nr·sin(j·Nr·θ)·i_f² is ½·j·Nr·Lfj·i_f².
+    return (
+        DetentHarmonic(4, peak4 / (0.5 * 4 * nr * i_f**2)),
+        DetentHarmonic(8, peak8 / (0.5 * 8 * nr * i_f**2)),
+    )
+
+
+def _reluctance(seed: int, motor: MotorParams, rated_A: float) -> float:
+    rng = _stream(seed, _Group.RELUCTANCE_TORQUE)
+    # τ_vr peaks at Nr·L1·I²: a fraction of Kt·I at rated current.
+    return _u(rng, 0.02, 0.06) * motor.kt_Nm_per_A * rated_A / (motor.rotor_teeth * rated_A**2)
+
+
+def _distortion(seed: int) -> tuple[tuple[CurrentHarmonic, ...], tuple[CurrentHarmonic, ...]]:
+    rng = _stream(seed, _Group.CURRENT_DISTORTION)
+    phase_a: list[CurrentHarmonic] = []
+    phase_b: list[CurrentHarmonic] = []
+    low, high = DISTORTION_RELATIVE
+    for order in (2, 3, 5):
+        # Common level, then each phase ±20 % of it: still within the range.
+        level = _u(rng, low / 0.8, high / 1.2)
+        phase = _u(rng, 0.0, 2.0 * math.pi)
+        for target in (phase_a, phase_b):
+            target.append(CurrentHarmonic(order, level * _u(rng, 0.8, 1.2),
+                                          phase + _u(rng, -0.3, 0.3)))
+    return tuple(phase_a), tuple(phase_b)
+
+
+def _loop_bandwidths(seed: int) -> tuple[float, float]:
+    """A first-order current loop of 0.1-1 ms, the two phases within 5 % of each other."""
+    rng = _stream(seed, _Group.CURRENT_LOOP_LAG)
+    # (1 + s/2)/(1 − s/2) ≤ 1.05 for s ≤ 0.048; the middle leaves room for both.
+    spread = _u(rng, 0.005, 0.048) * _sign(rng)
+    tau = _log_u(rng, 1.0e-4 / 0.975, 1.0e-3 / 1.025)
+    return (1.0 / (2.0 * math.pi * tau * (1.0 + spread / 2.0)),
+            1.0 / (2.0 * math.pi * tau * (1.0 - spread / 2.0)))
+
+
+def _disk(seed: int) -> tuple[DiskParams, float]:
+    rng = _stream(seed, _Group.DISK)
+    return DiskParams(inertia_kgm2=_log_u(rng, 5.0e-6, 1.0e-4)), _u(rng, 0.02, 0.12)
+
+
+def _belt(seed: int, rotor_inertia: float) -> tuple[BeltParams, float]:
+    """The pan unit's kind over its range: gear, belt mode with the motor held, inertias.
+
+    The load inertia is sized by what the motor sees (J_load·n², 0.3-30 times
+    the rotor's), the stiffness by the load-on-belt mode with the motor held
+    (30-500 Hz), both at the load shaft as ``BeltParams`` keeps them.
+    """
+    rng = _stream(seed, _Group.BELT)
+    reduction = _log_u(rng, 0.1, 0.5)
+    f_held = _log_u(rng, 30.0, 500.0)
+    zeta = _u(rng, 0.02, 0.2)
+    pulley = _log_u(rng, 3.0e-6, 2.0e-5)
+    load = _log_u(rng, 0.3, 30.0) * rotor_inertia / (reduction * reduction)
+    stiffness = (2.0 * math.pi * f_held) ** 2 * load
+    belt = BeltParams(
+        motor_pulley_inertia_kgm2=pulley,
+        load_inertia_kgm2=load,
+        stiffness_Nm_per_rad=stiffness,
+        damping_Nms_per_rad=2.0 * zeta * math.sqrt(stiffness * load),
+        reduction=reduction,
+    )
+    return belt, _u(rng, 0.05, 0.15)
+
+
+def _coupling(seed: int, downstream_inertia: float) -> CouplingParams:
+    rng = _stream(seed, _Group.LOAD_RESONANCE)
+    f = _log_u(rng, 60.0, 400.0)
+    zeta = _u(rng, 0.02, 0.1)
+    k = (2.0 * math.pi * f) ** 2 * downstream_inertia
+    return CouplingParams(
+        resonance_hz=f,
+        damping_ratio=zeta,
+        stiffness_Nm_per_rad=k,
+        damping_Nms_per_rad=2.0 * zeta * math.sqrt(k * downstream_inertia),
+    )
+
+
+def _bearings(seed: int, holding_Nm: float, holding_load_Nm: float, motor_speed: float,
+              load_speed: float) -> tuple[FrictionParams, FrictionParams]:
+    """Always there: viscous drag on the rotor (bearings, iron losses) and on a belt's load.
+
+    No Coulomb part: the paper's model has no friction, and Coulomb friction is what
+    the vocabulary's ``friction`` names. A unit without that effect is the paper's
+    physics; its viscous drag is the chain's damping, which the nominal model has.
+    The draws are kept so the stream is unchanged for every later group.
+    """
+    rng = _stream(seed, _Group.BEARINGS)
+    _u(rng, 0.002, 0.01)  # the Coulomb draws of old, kept for the stream
+    _u(rng, 0.002, 0.01)
+    rotor = FrictionParams(
+        coulomb_pos_Nm=0.0,
+        coulomb_neg_Nm=0.0,
+        viscous_Nms=_u(rng, 0.001, 0.004),
+        smoothing_rad_s=0.01 * motor_speed,
+    )
+    _u(rng, 0.01, 0.03)  # the load's Coulomb draw of old
+    load = FrictionParams(
+        coulomb_pos_Nm=0.0,
+        coulomb_neg_Nm=0.0,
+        viscous_Nms=_u(rng, 0.005, 0.02) * holding_load_Nm / load_speed,
+        smoothing_rad_s=0.02 * load_speed,
+    )
+    return rotor, load
+
+
+def _load_friction(seed: int, holding_load_Nm: float, load_speed: float) -> FrictionParams:
+    """Friction at the load, tens of % of the holding torque there, direction dependent."""
+    rng = _stream(seed, _Group.FRICTION)
+    coulomb = _u(rng, 0.1, 0.4) * holding_load_Nm
+    return FrictionParams(
+        coulomb_pos_Nm=coulomb,
+        coulomb_neg_Nm=coulomb * _u(rng, 0.7, 1.3),
+        viscous_Nms=_u(rng, 0.02, 0.1) * holding_load_Nm / load_speed,
+        smoothing_rad_s=0.02 * load_speed,
+    )
+
+
+def _clock(seed: int) -> tuple[float, float]:
+    rng = _stream(seed, _Group.SENSOR_CLOCK_DRIFT)
+    return _u(rng, 100.0, 500.0) * _sign(rng), _u(rng, 0.0, 1.0)
+
+
+def _nonlinearity(seed: int) -> tuple[float, float]:
+    """c2, c3 whose worst deviation at full scale, (|c2| + |c3|)·FS, is 0.5-3 % of FS."""
+    rng = _stream(seed, _Group.SENSOR_NONLINEARITY)
+    total = _u(rng, 0.005, 0.03)
+    share = _u(rng, 0.0, 1.0)
+    return share * total * _sign(rng), (1.0 - share) * total * _sign(rng)
+
+
+def _tilt(seed: int) -> float:
+    rng = _stream(seed, _Group.SENSOR_TILT)
+    return math.radians(_u(rng, 5.0, 20.0)) * _sign(rng)
+
+
+def draw_unit(
+    seed: int,
+    *,
+    load: LoadKind,
+    effects: frozenset[Effect],
+    unnamed: frozenset[UnnamedEffect] = frozenset(),
+    noise_density_ug: float | None = None,
+) -> UnitParams:
+    """One unit of the wide population, always the same for the same seed.
+
+    ``effects`` are exactly those on (with this unit's magnitudes, drawn
+    whether on or not); ``unnamed`` adds out-of-vocabulary physics.
+    ``noise_density_ug`` overrides the sensor's own noise density.
+    """
+    if seed < 0:
+        raise ValueError("a population seed is a non-negative integer")
+    serial = parse_serial(f"SN{POPULATION_SERIAL_BASE + seed % 100000}")
+    rated_A = RATED_CURRENT_mA / 1000.0
+    base = _motor(seed)
+    holding = base.holding_torque_Nm(rated_A)
+    flux_a, flux_b = _flux(seed, base.Lm1_H)
+    detent = _detent(seed, base, holding)
+    l1 = _reluctance(seed, base, rated_A)
+    saturation = draw_saturation(_stream(seed, _Group.MAGNETIC_SATURATION), rated_A)
+    eccentricity = draw_eccentricity(_stream(seed, _Group.ROTOR_ECCENTRICITY), holding)
+    on = frozenset(Effect(e) for e in effects)
+    motor = MotorParams(
+        rotor_teeth=base.rotor_teeth,
+        field_current_A=base.field_current_A,
+        L0_H=base.L0_H,
+        L1_H=l1 if Effect.RELUCTANCE_TORQUE in on else 0.0,
+        Lm0_H=base.Lm0_H,
+        Lm1_H=base.Lm1_H,
+        flux_a=flux_a if Effect.FLUX_HARMONICS in on else (),
+        flux_b=flux_b if Effect.FLUX_HARMONICS in on else (),
+        Lf0_H=base.Lf0_H,
+        detent=detent if Effect.DETENT_TORQUE in on else (),
+        rotor_inertia_kgm2=base.rotor_inertia_kgm2,
+        saturation_current_A=saturation if Effect.MAGNETIC_SATURATION in on else None,
+        eccentricity=eccentricity if Effect.ROTOR_ECCENTRICITY in on else None,
+    )
+
+    amp = _amplifier(seed)
+    dist_a, dist_b = _distortion(seed)
+    bw_a, bw_b = _loop_bandwidths(seed)
+    distort = Effect.CURRENT_DISTORTION in on
+    lag = Effect.CURRENT_LOOP_LAG in on
+    amplifier = AmplifierParams(
+        offset_a_mA=amp.offset_a_mA,
+        offset_b_mA=amp.offset_b_mA,
+        gain_error_a=amp.gain_error_a,
+        gain_error_b=amp.gain_error_b,
+        distortion_a=dist_a if distort else (),
+        distortion_b=dist_b if distort else (),
+        bandwidth_a_hz=bw_a if lag else None,
+        bandwidth_b_hz=bw_b if lag else None,
+    )
+
+    disk, disk_radius = _disk(seed)
+    belt, belt_radius = _belt(seed, base.rotor_inertia_kgm2)
+    is_belt = load is LoadKind.BELT
+    ratio = belt.reduction if is_belt else 1.0
+    motor_speed = 2.0 * math.pi * NOMINAL_ELECTRICAL_HZ / base.rotor_teeth
+    holding_load = holding / ratio
+    load_speed = motor_speed * ratio
+    rotor_bearing, load_bearing = _bearings(seed, holding, holding_load, motor_speed, load_speed)
+    load_friction = _load_friction(seed, holding_load, load_speed)
+    coupling = _coupling(seed, belt.motor_pulley_inertia_kgm2 if is_belt else disk.inertia_kgm2)
+    mechanics = MechanicsParams(
+        load=load,
+        rotor_bearing=rotor_bearing,
+        disk=None if is_belt else disk,
+        belt=belt if is_belt else None,
+        load_bearing=load_bearing if is_belt else None,
+        load_friction=load_friction if Effect.FRICTION in on else None,
+        coupling=coupling if Effect.LOAD_RESONANCE in on else None,
+    )
+
+    sensor_rng = _stream(seed, _Group.SENSOR)
+    density = _u(sensor_rng, 100.0, 400.0)
+    bandwidth = _u(sensor_rng, 400.0, 1000.0)
+    damping = _u(sensor_rng, 0.6, 0.8)
+    drift_ppm, sample_phase = _clock(seed)
+    drift = Effect.SENSOR_CLOCK_DRIFT in on
+    c2, c3 = _nonlinearity(seed)
+    bent = UnnamedEffect.SENSOR_NONLINEARITY in unnamed
+    sensor = SensorParams(
+        radius_m=belt_radius if is_belt else disk_radius,
+        bandwidth_hz=bandwidth,
+        damping_ratio=damping,
+        noise_density_ug=density if noise_density_ug is None else float(noise_density_ug),
+        clock_drift_ppm=drift_ppm if drift else 0.0,
+        sample_phase=sample_phase if drift else 0.0,
+        tilt_rad=_tilt(seed) if UnnamedEffect.SENSOR_TILT in unnamed else 0.0,
+        nonlinearity_c2=c2 if bent else 0.0,
+        nonlinearity_c3=c3 if bent else 0.0,
+    )
+    return UnitParams(
+        serial=serial.label,
+        serial_number=serial.number,
+        motor=motor,
+        amplifier=amplifier,
+        mechanics=mechanics,
+        sensor=sensor,
+        effects=on,
+        rated_current_mA=RATED_CURRENT_mA,
+        microsteps=MICROSTEPS,
+    )
