@@ -12,6 +12,9 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
+from typing import Final
+
+import numpy as np
 
 from station.core import GAIN_UNITY, NOMINAL_TRIMS, SENSOR_RANGES_G, Trims
 
@@ -209,6 +212,118 @@ def characterization_schedule(
     return Schedule(
         ScheduleName.CHARACTERIZATION.value, tuple(holds), microsteps, plan.sensor_range_g
     )
+
+
+@dataclass(frozen=True)
+class RandomCharacterizationRanges:
+    """What ``random_characterization`` draws from: a characterization as someone else
+    might write it, within what the diagnosis is meant to cope with."""
+
+    speeds: tuple[int, int] = (2, 6)
+    electrical_hz: tuple[float, float] = (5.0, 40.0)
+    amplitudes: tuple[int, int] = (2, 4)
+    lowest_amplitude_mA: int = 300
+    strong_share: float = 0.8
+    """At least one amplitude is at least this share of the rated current: the effects that
+    grow with I must show somewhere."""
+    hold_s: tuple[float, float] = (0.4, 1.0)
+    offset_step_mA: tuple[int, int] = (20, 80)
+    gain_step: tuple[int, int] = (200, 800)
+    both_signs_probability: float = 0.5
+    sensor_ranges_g: tuple[int, ...] = (4, 8, 16)
+
+
+RANDOM_CHARACTERIZATION: Final = RandomCharacterizationRanges()
+RANDOM_CHARACTERIZATION_NAME: Final = f"{ScheduleName.CHARACTERIZATION.value}-random"
+"""Recorded as the schedule's name, so a random draw is never taken for the station's own."""
+
+_HZ_RESOLUTION = 0.5
+"""People write speeds in round figures; a 0.5 Hz grid still gives 71 choices."""
+_AMPLITUDE_RESOLUTION_MA = 10
+
+
+def random_characterization(
+    rng: np.random.Generator,
+    *,
+    microsteps: int = 256,
+    sync_period_s: float = 0.001,
+    rated_current_mA: int = 1000,
+    center: Trims = NOMINAL_TRIMS,
+    ranges: RandomCharacterizationRanges = RANDOM_CHARACTERIZATION,
+) -> Schedule:
+    """A characterization drawn at random, for benchmarking the diagnosis beyond the
+    one schedule the station itself runs.
+
+    The station's own plan lets every hold settle for whole periods and at least ten
+    of them; a characterization written elsewhere need not, so here every hold
+    (standstill and stop included) lasts the same number of SYNC cycles whatever its
+    speed: a 0.5 s hold at 6 Hz is 3 periods, at 7 Hz 3.5. Speeds, directions and
+    currents come in a drawn order, as a person might list them; at each condition the
+    hold on ``center`` comes first, then the steps (offset A, offset B, gain split,
+    each positive; with both signs, the negative ones follow).
+    """
+    r = ranges
+    if rated_current_mA < r.lowest_amplitude_mA:
+        raise ValueError(
+            f"rated current {rated_current_mA} mA is below the lowest amplitude drawn "
+            f"({r.lowest_amplitude_mA} mA)"
+        )
+    hz_grid = np.arange(
+        math.ceil(r.electrical_hz[0] / _HZ_RESOLUTION),
+        math.floor(r.electrical_hz[1] / _HZ_RESOLUTION) + 1,
+    ) * _HZ_RESOLUTION
+    n_speeds = int(rng.integers(r.speeds[0], r.speeds[1] + 1))
+    speeds = [float(hz) for hz in rng.choice(hz_grid, size=n_speeds, replace=False)]
+    amplitudes = _draw_amplitudes(rng, rated_current_mA, r)
+    hold_s = float(rng.uniform(*r.hold_s))
+    cycles = max(1, round(hold_s / sync_period_s))
+    offset_step = int(rng.integers(r.offset_step_mA[0], r.offset_step_mA[1] + 1))
+    gain_step = int(rng.integers(r.gain_step[0], r.gain_step[1] + 1))
+    signs = (1, -1) if rng.random() < r.both_signs_probability else (1,)
+    directions = (1, -1) if rng.random() < 0.5 else (-1, 1)
+    direction_outer = bool(rng.random() < 0.5)
+    range_g = int(rng.choice(r.sensor_ranges_g))
+
+    c = center
+    steps: list[tuple[Phase, Trims]] = []
+    for sign in signs:
+        steps += [
+            (Phase.STEP_OFFSET_A, replace(c, offset_a_mA=c.offset_a_mA + sign * offset_step)),
+            (Phase.STEP_OFFSET_B, replace(c, offset_b_mA=c.offset_b_mA + sign * offset_step)),
+            (Phase.STEP_GAIN, replace(c, gain_a=c.gain_a + sign * gain_step,
+                                      gain_b=c.gain_b - sign * gain_step)),
+        ]
+    conditions = (
+        [(d, hz) for d in directions for hz in speeds]
+        if direction_outer
+        else [(d, hz) for hz in speeds for d in directions]
+    )
+    top = max(amplitudes)
+    holds: list[Hold] = [Hold(Phase.STANDSTILL, 0, top, c, cycles)]
+    for direction, hz in conditions:
+        v = direction * velocity_for(hz, microsteps)
+        for amp in amplitudes:
+            holds.append(Hold(Phase.CONDITION, v, amp, c, cycles))
+            holds.extend(Hold(phase, v, amp, trims, cycles) for phase, trims in steps)
+    holds.append(Hold(Phase.STOP, 0, top, c, cycles))
+    return Schedule(RANDOM_CHARACTERIZATION_NAME, tuple(holds), microsteps, range_g)
+
+
+def _draw_amplitudes(
+    rng: np.random.Generator, rated_current_mA: int, r: RandomCharacterizationRanges
+) -> list[int]:
+    """Distinct whole-10 mA currents, one of them strong, in a drawn order."""
+    step = _AMPLITUDE_RESOLUTION_MA
+    grid = np.arange(math.ceil(r.lowest_amplitude_mA / step), rated_current_mA // step + 1) * step
+    strong = grid[grid >= r.strong_share * rated_current_mA]
+    if strong.size == 0:  # a rating that is no multiple of 10 mA: its own value is strong
+        grid = np.append(grid, rated_current_mA)
+        strong = grid[-1:]
+    wanted = min(int(rng.integers(r.amplitudes[0], r.amplitudes[1] + 1)), grid.size)
+    first = int(rng.choice(strong))
+    others = rng.choice(grid[grid != first], size=wanted - 1, replace=False)
+    amplitudes = [first, *(int(a) for a in others)]
+    return [amplitudes[i] for i in rng.permutation(len(amplitudes))]
 
 
 def named_schedule(
