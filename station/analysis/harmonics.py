@@ -40,6 +40,10 @@ class Harmonics:
     residual_rms: float
     samples_used: int
     samples_missing: int
+    # σ² of one sample from the fit's residual (dof-corrected), and each order's variance
+    # per unit of it: white noise alone would give ``noise_variance * unit_variance``.
+    noise_variance: float = math.nan
+    unit_variance: NDArray[np.float64] | None = None
 
     def h(self, order: int) -> complex:
         return complex(self.phasors[order - 1])
@@ -105,8 +109,9 @@ def demodulate(
     dof = used - x.shape[1]
     sigma2 = float(residual @ residual) / dof
     white = np.diag(np.linalg.inv(x.T @ x))
-    variance = np.full(orders, np.nan)
-    variance[:fitted] = sigma2 * (white[1 : fitted + 1] + white[fitted + 1 :])
+    unit = np.full(orders, np.nan)
+    unit[:fitted] = white[1 : fitted + 1] + white[fitted + 1 :]
+    variance = sigma2 * unit
     periods = int(signal.size // samples_per_period)
     if periods >= _MIN_PERIODS_FOR_SCATTER:
         # Per-period projections of the residual: their scatter is the variance of one
@@ -123,6 +128,8 @@ def demodulate(
         residual_rms=math.sqrt(float(residual @ residual) / used),
         samples_used=used,
         samples_missing=int(signal.size - used),
+        noise_variance=sigma2,
+        unit_variance=unit,
     )
 
 

@@ -31,7 +31,13 @@ from station.analysis.harmonics import (
     period_phasors,
     phase_drift,
 )
-from station.analysis.segments import Rejected, Segment, steady_segments
+from station.analysis.segments import (
+    SETTLE_ORDERS,
+    Rejected,
+    Segment,
+    SettleFallback,
+    steady_segments,
+)
 from station.analysis.timeline import Timeline
 from station.errors import InputError
 
@@ -49,6 +55,9 @@ class AnalysisOptions:
     method: MethodChoice = MethodChoice.AUTO
     settle_periods: float | None = None  # None: judged from the data
     orders: int = DEFAULT_ORDERS
+    # Settling of holds too short to judge from their own data (None: they are skipped).
+    settle_fallback: SettleFallback | None = None
+    settle_orders: tuple[int, ...] = SETTLE_ORDERS  # whose per-period phasors must settle
 
 
 class EstimateUnsupported(InputError):
@@ -125,7 +134,8 @@ def measure(
     """Harmonics of every steady segment of the run."""
     signal = tangential_signal(timeline)
     segments, rejected = steady_segments(
-        timeline, signal, settle_periods=options.settle_periods
+        timeline, signal, settle_periods=options.settle_periods,
+        settle_fallback=options.settle_fallback, settle_orders=options.settle_orders,
     )
     if not timeline.drive_reported:
         segments = [replace(seg, microsteps_per_sample=seg.microsteps_per_sample * (1 + d))

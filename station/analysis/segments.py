@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -41,13 +43,32 @@ MIN_PERIODS = 3
 """A segment shorter than this many electrical periods carries no usable phasor."""
 
 _SETTLE_BLOCK = 3
+
+SETTLE_ORDERS = (1, 2)
+"""Orders whose per-period phasors decide settling unless the caller names others."""
 """Periods averaged when deciding that the rotor has settled."""
 
 _SETTLE_SIGMAS = 3.0
+_OUTLIER_SIGMAS = 5.0
+"""A single period this many robust spreads from the end level is still in its transient."""
 
 
 _OPERATION_ENABLED_MASK = 0x006F
 _OPERATION_ENABLED = 0x0027
+
+
+class Settling(StrEnum):
+    """How a segment's start was chosen: judged on its own data, or given from outside."""
+
+    DATA = "data"  # per-period phasors reached their final level (needs 6 periods)
+    GIVEN = "given"  # a settling time given by the caller (``settle_periods``)
+    MODEL = "model"  # too short to judge: a time from a model of the chain's decay
+
+
+SettleFallback = Callable[[int, float], float | None]
+"""For a hold too short to judge its own settling: (amplitude mA, signed electrical Hz)
+to the seconds after the hold's start that its transient needs, or None when the
+chain cannot settle within such a hold."""
 
 
 @dataclass(frozen=True)
@@ -70,6 +91,7 @@ class Segment:
     microsteps_per_sample: float  # fitted slope
     periods: int
     microsteps_per_fullstep: int
+    settling: Settling = Settling.DATA
 
     @property
     def samples(self) -> int:
@@ -249,7 +271,15 @@ def settled_period(per_period: NDArray[np.complex128]) -> int | None:
     for j in range(periods - _SETTLE_BLOCK + 1):
         block = _complex_median(per_period[j : j + _SETTLE_BLOCK])
         if np.all(np.abs(block - reference) <= _SETTLE_SIGMAS * spread / 2):
-            return j
+            # The median outvotes a transient in the block's first period as it outvotes a
+            # period that lost samples; the first period kept must itself be near the end
+            # level (loosely: a lossy period then costs one period, not a biased phasor).
+            first = j
+            while first < periods - _SETTLE_BLOCK and np.any(
+                np.abs(per_period[first] - reference) > _OUTLIER_SIGMAS * spread
+            ):
+                first += 1
+            return first
     return None
 
 
@@ -268,6 +298,8 @@ def steady_segments(
     *,
     settle_periods: float | None = None,
     min_speed_hz: float = 1.0,
+    settle_fallback: SettleFallback | None = None,
+    settle_orders: tuple[int, ...] = SETTLE_ORDERS,
 ) -> tuple[list[Segment], list[Rejected]]:
     """Steady, settled, whole-period segments of the run, and the stretches rejected.
 
@@ -275,6 +307,14 @@ def steady_segments(
     With ``settle_periods`` None the settling is judged from the data (per
     period phasors of orders 1 and 2); a number drops exactly that many
     electrical periods after the start of each steady stretch.
+    ``settle_fallback`` rescues stretches too short for the data to judge
+    (fewer than six periods): it gives the settling time from a model of the
+    chain, and the segment may then be as short as one period; its phasors are
+    noisier, and their variance says so. On longer stretches it is a floor under
+    the data's judgement. ``settle_orders`` are the orders whose
+    per-period phasors must have settled: the calibration's two by default; a caller
+    that uses higher orders should watch them too, since a mode's ringing shows at
+    the orders near its frequency long after orders 1 and 2 look steady.
     """
     m = timeline.metadata.microsteps_per_fullstep
     cycle = 4 * m
@@ -298,30 +338,58 @@ def steady_segments(
             spp = cycle / abs(slope)
             n = np.arange(b - a, dtype=np.float64)
             angle = (2 * math.pi / cycle) * np.mod(p0 + slope * n, cycle)
+            settling = Settling.GIVEN
+            shortest = MIN_PERIODS
             if settle_periods is None:
+                settling = Settling.DATA
                 window, present = signal[a:b], ok[a:b]
                 centred = np.where(present, window - np.mean(window[present]), 0.0)
-                phasors = period_phasors(centred, present, angle, spp, (1, 2))
+                usable = tuple(k for k in settle_orders if 2 * k < spp)
+                phasors = period_phasors(centred, present, angle, spp, usable)
                 first = settled_period(phasors)
-                if first is None:
-                    held = (b - a) / spp
+                held = (b - a) / spp
+                too_short = held < 2 * _SETTLE_BLOCK
+                if first is None and too_short and settle_fallback is not None:
+                    signed_hz = math.copysign(hz, slope)
+                    settle_s = settle_fallback(hold.amplitude_mA, signed_hz)
+                    if settle_s is None:
+                        rejected.append(Rejected(a, b, (
+                            f"a hold of {held:.1f} periods at {signed_hz:+.1f} Hz ends before the "
+                            "chain's slowest mode has decayed")))
+                        continue
+                    # The transient runs from the hold's change, not from the steady stretch.
+                    skip = max(0.0, settle_s / period_s - (a - hold.start))
+                    settling, shortest = Settling.MODEL, 1
+                elif first is None:
                     reason = (
                         f"a steady stretch of {held:.1f} periods is too short to judge settling "
                         f"(needs {2 * _SETTLE_BLOCK}); give the settling time explicitly"
-                        if held < 2 * _SETTLE_BLOCK
+                        if too_short
                         else "the rotor did not settle within the hold"
                     )
                     rejected.append(Rejected(a, b, reason))
                     continue
-                skip = first * spp
+                else:
+                    skip = first * spp
+                    if settle_fallback is not None:
+                        # A lightly damped mode rings on at orders the data test cannot
+                        # watch closely enough; where the model says it needs longer, wait.
+                        settle_s = settle_fallback(hold.amplitude_mA, math.copysign(hz, slope))
+                        if settle_s is not None:
+                            floor = settle_s / period_s - (a - hold.start)
+                            # Not at the cost of the hold: a model that wants longer than
+                            # the hold leaves (less than three periods) is not trusted over
+                            # the data's own judgement.
+                            if skip < floor <= b - a - MIN_PERIODS * spp:
+                                skip, settling = floor, Settling.MODEL
             else:
                 skip = settle_periods * spp
             # Half a sample of slack: the fitted speed is off in its last digits, and a hold
             # of exactly N periods must not come out as N − ε.
             periods = math.floor((b - a - skip + 0.5) / spp)
-            if periods < MIN_PERIODS:
+            if periods < shortest:
                 rejected.append(
-                    Rejected(a, b, f"fewer than {MIN_PERIODS} settled electrical periods")
+                    Rejected(a, b, f"fewer than {shortest} settled electrical periods")
                 )
                 continue
             start = b - round(periods * spp)
@@ -338,6 +406,7 @@ def steady_segments(
                     microsteps_per_sample=slope,
                     periods=periods,
                     microsteps_per_fullstep=m,
+                    settling=settling,
                 )
             )
     return segments, rejected
