@@ -1,57 +1,86 @@
-"""Diagnosis on concealed effects: the confusion matrix over many units, and its speed.
+"""Diagnosis on concealed physics, on trials nobody tuned on: the issue's targets.
 
-Every unit is recorded on the simulated bench (characterization schedule)
-with one effect of the issue's list switched on, or none, and diagnosed from
-the recording alone (``station.sim.concealed``, as the acceptance test does).
-Units and seeds here differ from the tests' and from those the thresholds
-were tuned on. The time to diagnose a ~50 s characterization recording
-(reading it included) is measured in the worker, one process per core, so it
-is a one-core figure.
+Every class of ``station.sim.concealed`` (a clean unit, each vocabulary id,
+two-effect combinations, two effects no id describes) is drawn
+``PER_CLASS`` times on fresh seeds above ``TRIAL_SEED_FLOOR`` (new every run:
+the seeds the diagnosis was developed on are never the ones reported),
+recorded in process and diagnosed from the recording alone, two worker
+processes side by side. The time per recording is measured in the worker
+(reading the recording included), so it is a one-core figure.
+
+``STATION_BENCH_DIAGNOSIS_PER_CLASS`` lowers the trial count for a quick look;
+the figures a note quotes come from the default.
 """
 
 from __future__ import annotations
 
+import os
 import statistics
 import sys
 import tempfile
+import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from bench.record import BenchRecord, Goal
-from station.sim.concealed import CLASSES, NO_EFFECT, Case, confusion, run_trial
+from station.sim.concealed import CLASSES, cases, confusion, fresh_seeds, run_trial
 
-SERIALS = tuple(f"SN{8201 + i}" for i in range(6))
-SCORE_TARGET = 0.9
+PER_CLASS = 8
+NAMED_TARGET = 0.9
+"""Each class named exactly (score 1) in at least this share of its trials."""
+CONTROL_TARGET = 0.95
+"""Clean units given no id in at least this share."""
+UNNAMED_TARGET = 0.9
+"""Physics outside the vocabulary given no id in at least this share."""
 TIME_TARGET_S = 30.0
-RECORDING_S = 45.0
-"""The issue's figure is for a 50 s characterization; shorter ones would flatter the time."""
+WALL_TARGET_MIN = 40.0
+
+
+def _per_class() -> int:
+    raw = os.environ.get("STATION_BENCH_DIAGNOSIS_PER_CLASS")
+    return PER_CLASS if raw is None else max(1, int(raw))
 
 
 def measure() -> list[BenchRecord]:
-    cases = [Case(s, t, 100 * i + j) for i, s in enumerate(SERIALS) for j, t in enumerate(CLASSES)]
+    per_class = _per_class()
+    drawn = cases(CLASSES, per_class, fresh_seeds(per_class * len(CLASSES)))
+    started = time.perf_counter()
     with (tempfile.TemporaryDirectory(prefix="bench-diagnosis-") as tmp,
           ProcessPoolExecutor(max_workers=2) as pool):
-        trials = list(pool.map(run_trial, cases, [Path(tmp)] * len(cases)))
+        trials = list(pool.map(run_trial, drawn, [Path(tmp)] * len(drawn)))
+    wall_min = (time.perf_counter() - started) / 60.0
     print(confusion(trials), file=sys.stderr, flush=True)
-    false_alarms = sum(1 for t in trials if t.case.truth == NO_EFFECT and t.doc["effects"])
-    worse = sum(1 for t in trials
-                if t.doc["effects"] and t.doc["fit"]["after"] >= t.doc["fit"]["before"])
-    times = [t.diagnose_s for t in trials]
-    records = [
-        BenchRecord("diagnosis_named_correctly", statistics.fmean(t.score for t in trials),
-                    "fraction", SCORE_TARGET, Goal.AT_LEAST),
-        BenchRecord("diagnosis_negative_controls_named", float(false_alarms), "recordings", 0.0,
-                    Goal.AT_MOST),
-        BenchRecord("diagnosis_named_without_better_fit", float(worse), "recordings", 0.0,
-                    Goal.AT_MOST),
-        BenchRecord("diagnosis_time_max", max(times), "s", TIME_TARGET_S, Goal.AT_MOST),
-        BenchRecord("diagnosis_time_median", statistics.median(times), "s", TIME_TARGET_S,
-                    Goal.AT_MOST),
-        BenchRecord("diagnosis_recording_length", statistics.fmean(t.recording_s for t in trials),
-                    "s", RECORDING_S, Goal.AT_LEAST),
+    records: list[BenchRecord] = []
+    for cls in CLASSES:
+        mine = [t for t in trials if t.case.cls == cls]
+        exact = statistics.fmean(1.0 if t.score == 1.0 else 0.0 for t in mine)
+        records.append(BenchRecord(f"diagnosis_named_exactly_{cls.label}", exact, "fraction",
+                                   NAMED_TARGET, Goal.AT_LEAST))
+    controls = [t for t in trials if t.case.cls.control]
+    unnamed = [t for t in trials if t.case.cls.out_of_vocabulary]
+    named = [t for t in trials if t.doc["effects"]]
+    records += [
+        BenchRecord("diagnosis_named_exactly_all_classes",
+                    statistics.fmean(1.0 if t.score == 1.0 else 0.0 for t in trials),
+                    "fraction", NAMED_TARGET, Goal.AT_LEAST),
+        BenchRecord("diagnosis_score_mean", statistics.fmean(t.score for t in trials),
+                    "fraction", NAMED_TARGET, Goal.AT_LEAST),
+        BenchRecord("diagnosis_controls_without_id",
+                    statistics.fmean(0.0 if t.doc["effects"] else 1.0 for t in controls),
+                    "fraction", CONTROL_TARGET, Goal.AT_LEAST),
+        BenchRecord("diagnosis_out_of_vocabulary_without_id",
+                    statistics.fmean(0.0 if t.doc["effects"] else 1.0 for t in unnamed),
+                    "fraction", UNNAMED_TARGET, Goal.AT_LEAST),
+        BenchRecord("diagnosis_named_with_better_held_out_fit",
+                    statistics.fmean(1.0 if t.doc["fit"]["after"] < t.doc["fit"]["before"]
+                                     else 0.0 for t in named) if named else 1.0,
+                    "fraction", 1.0, Goal.AT_LEAST),
+        BenchRecord("diagnosis_time_max", max(t.diagnose_s for t in trials), "s",
+                    TIME_TARGET_S, Goal.AT_MOST),
+        BenchRecord("diagnosis_time_median", statistics.median(t.diagnose_s for t in trials),
+                    "s", TIME_TARGET_S, Goal.AT_MOST),
+        BenchRecord("diagnosis_trials", float(len(trials)), "trials",
+                    float(8 * len(CLASSES)), Goal.AT_LEAST),
+        BenchRecord("diagnosis_wall_time", wall_min, "min", WALL_TARGET_MIN, Goal.AT_MOST),
     ]
-    for truth in CLASSES:
-        row = [t.score for t in trials if t.case.truth == truth]
-        records.append(BenchRecord(f"diagnosis_confusion_{truth}", statistics.fmean(row),
-                                   "fraction", SCORE_TARGET, Goal.AT_LEAST))
     return records

@@ -210,15 +210,19 @@ def diagnosis_view(doc: dict[str, Any]) -> Group:
     located = Table(title="where the nominal model fails (strongest 10)", box=box.SIMPLE)
     for column in ("where", "χ²/dof", "confidence"):
         located.add_column(column)
-    for loc in doc["located"][:10]:
-        if loc["kind"] == "harmonic":
+    # What no id explains comes first: it is what the engineer must look at.
+    for loc in sorted(doc["located"], key=lambda item: item["kind"] != "unexplained")[:10]:
+        if "order" in loc:
             where = (f"order {loc['order']} at {loc['amplitude_mA']} mA, "
                      f"{loc['electrical_hz']:+.1f} Hz")
+            if loc["kind"] == "unexplained":
+                where += " (left unexplained)"
         else:
             where = f"{loc['parameter']} drifts ({loc['trend']})"
         located.add_row(where, f"{loc['chi2'] / max(loc['dof'], 1):.1f}",
                         f"{loc['confidence']:.4f}")
-    notes: list[RenderableType] = [Text(f"warning: {w}", style="yellow") for w in doc["warnings"]]
+    notes: list[RenderableType] = [Text(f["finding"], style="red") for f in doc["findings"]]
+    notes += [Text(f"warning: {w}", style="yellow") for w in doc["warnings"]]
     for e in doc["effects"]:
         if e.get("separating_experiment"):
             notes.append(Text(f"to separate {e['id']}: {e['separating_experiment']}"))

@@ -126,10 +126,11 @@ def test_diagnose_of_a_missing_recording_is_an_input_error(tmp_path: Path) -> No
     assert _run(["diagnose", str(tmp_path / "absent.blf"), "--json"]) == 2
 
 
-def test_diagnose_of_a_run_at_one_condition_is_an_input_error(
+def test_diagnose_of_a_run_that_is_not_a_characterization_says_which_schedule_is_needed(
     tmp_path: Path, capsys: pytest.CaptureFixture[str],
 ) -> None:
-    """One speed, one current, one direction: nothing to hold out, nothing to compare."""
+    """One speed, one current, one direction: nothing to hold out, nothing to compare.
+    Exit 2, the message names the schedules that would do, and nothing is written."""
     v = velocity_for(20.0, 256)
     schedule = Schedule(
         "one-condition",
@@ -149,5 +150,11 @@ def test_diagnose_of_a_run_at_one_condition_is_an_input_error(
                          truth=tmp_path / "truth.json"),
         schedule,
     )
+    before = set(out.parent.iterdir())
     assert _run(["diagnose", str(out), "--json"]) == 2
-    assert "conditions" in capsys.readouterr().err
+    captured = capsys.readouterr()
+    assert "not a characterization" in captured.err
+    assert "station characterize" in captured.err
+    assert "--schedule characterization" in captured.err
+    assert captured.out == ""
+    assert set(out.parent.iterdir()) == before

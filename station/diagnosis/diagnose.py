@@ -1,17 +1,31 @@
 """Locate, name and model what the paper's model leaves out of a recording.
 
-1. Fit the nominal model (the paper's torque model on the fixture's chain,
-   amplifier offsets and gains, load angles, sensor timing).
-2. Locate: where its residual is significant, per harmonic order and
+1. Fit the nominal model: the paper's torque model on the chain the fixture
+   declares (a rigid disk, or a belt with the metadata's gear ratio and
+   unknown stiffness, damping and inertia ratio), the amplifier's offsets and
+   gains, a load angle per condition and the sensor's own low-pass. Chains are
+   started from a grid over their natural frequencies and inertia ratio, with
+   the linear parameters solved at every grid point, so a fit starts in the
+   right basin whatever the belt. A parameter the data pull past a physical
+   limit is a finding ("the nominal model cannot describe this recording"),
+   never a result.
+2. Use every hold: holds too short to judge their own settling are settled
+   by the fitted chain's slowest decay and added; what is skipped says why.
+3. Locate: where the nominal residual is significant, per harmonic order and
    condition, with a confidence level; and where its "constants" (the
    amplifier offsets and gain imbalance, i.e. the optimal trims) drift from
    one condition to another.
-3. Name: add each candidate effect's term group in turn, keep the best one
-   only when it wins on conditions held out of the fit *and* by Schwarz's
-   criterion, and repeat. A rival whose held-out residual is about as small
-   is reported with it: the data cannot tell them apart, and the report
-   names the experiment that would.
-4. Model: the extended model's held-out residual against the nominal's.
+4. Name: every term group of the vocabulary is tried; a group counts when it
+   lowers χ² by more than the noise explains for the parameters it adds (an F
+   test against the larger model's own residual, and Schwarz's criterion) and
+   lowers it on conditions held out of the fit. Combinations of up to three
+   are searched with a beam. A rival that fits held-out data about as well
+   (a paired test on the held-out residuals) is reported with the experiment
+   that would separate them.
+5. Be honest about the unknown: when the best model still leaves held-out
+   residual well beyond the noise, that is said, with where it is, and an id
+   is kept only if it explains more of the mismatch than is left unexplained:
+   physics that no id describes is never given the nearest id.
 
 Thresholds are stated in units of the measurement's own noise (χ²), so they
 carry over to recordings from other benches and simulators.
@@ -19,9 +33,10 @@ carry over to recordings from other benches and simulators.
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -30,72 +45,92 @@ from numpy.typing import NDArray
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
+from station.analysis.segments import SettleFallback
 from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, Effect
-from station.diagnosis.fit import Fit, HeldOut, fit, held_out, solve_linear, starts_from
-from station.diagnosis.model import (
-    CANDIDATES,
-    DETENT_ORDERS,
-    DISTORTION_ORDERS,
-    FLUX_ORDERS,
-    ChainKind,
-    Model,
-    ModelSpec,
-    chain_for,
+from station.diagnosis.fit import (
+    SCREEN_HELD,
+    Fit,
+    HeldOut,
+    ParameterJudgement,
+    ParameterState,
+    fit,
+    held_out,
+    judge_parameters,
+    screen,
+    sigmas,
+    solve_linear,
 )
-from station.diagnosis.observations import ConditionKey, Observations, observe
+from station.diagnosis.groups import (
+    GROUP_ESTIMATES,
+    GROUP_PARAMETERS,
+    GROUP_STARTS,
+    separating_experiment,
+)
+from station.diagnosis.model import ChainKind, Model, ModelSpec, chain_for
+from station.diagnosis.observations import (
+    ConditionKey,
+    NotDiagnosable,
+    Observations,
+    observe,
+)
 
 SIGNIFICANT_CONFIDENCE = 0.999
-"""A residual or drift is reported as located when noise alone explains it less than
+"""A residual, a drift or a term group counts when noise alone would produce it less than
 once in a thousand."""
 
-MIN_GAIN_CHI2 = 50.0
-"""A term group must cut the held-out χ² by at least this much (several σ of a χ²
-difference for the few dozen parameters a group adds)."""
-
-MIN_GAIN_FRACTION = 0.5
-"""...and by at least this fraction of what is left: below it, what remains is the
-model's fine detail, not a missing physical effect."""
-
-SEPARABLE_RATIO = 2.0
-"""A rival group that leaves less than this times the best one's held-out χ² cannot
-be told apart from it on these data."""
-
 MAX_EFFECTS = 3
+BEAM = 2
+"""Models kept at each size while searching combinations."""
+REGRID_CHI2 = 3.0
+"""A base fitting worse than this χ²/dof has likely bent its chain: new groups are also
+started from the chain grid."""
+REWEIGHT_CHANGE = math.log(1.3)
+"""Weights that moved by more than 30 % (at the 99th percentile) call for a second pass."""
+PROMISING = 5
+"""Groups carried into combinations: those significant alone and the best few by their
+χ² gain alone (an effect masked by a stronger one still gains something alone)."""
 
-SEPARATING_EXPERIMENTS: dict[frozenset[Effect], str] = {
-    frozenset({Effect.FLUX_HARMONICS, Effect.CURRENT_DISTORTION}): (
-        "record the phase currents (drive current sense or a current probe) while running: "
-        "distortion shows in the current waveform, flux harmonics do not; or back-drive the "
-        "motor with the drive disabled and record the back-EMF, whose harmonics are the flux's"
-    ),
-    frozenset({Effect.FLUX_HARMONICS, Effect.DETENT_TORQUE}): (
-        "repeat the characterization at more currents including a low one: cogging torque "
-        "does not change with current, flux-harmonic torque grows with it"
-    ),
-    frozenset({Effect.DETENT_TORQUE, Effect.CURRENT_DISTORTION}): (
-        "record the drive's phase currents, or run at more currents: cogging does not change "
-        "with current, distortion torque grows with it"
-    ),
-    frozenset({Effect.LOAD_RESONANCE, Effect.RELUCTANCE_TORQUE}): (
-        "tap test or speed sweep with the rotor held: a compliant coupling keeps its frequency "
-        "whatever the current, the magnetic spring's frequency moves with it"
-    ),
+RIVAL_Z = 2.0
+"""A rival whose held-out χ² is within this many standard errors of the winner's (paired
+over the held-out residuals) cannot be told apart from it on these data."""
+
+UNEXPLAINED_RATIO = 1.25
+"""Held-out χ² per value above which what is left is more than noise, whatever the count
+(the noise estimates themselves carry some 10-20 % of scatter)."""
+
+SETTLE_E_FOLDINGS = math.log(300.0)
+"""A transient is taken as gone when it has decayed to 1/300 of its start."""
+
+PRIOR_SETTLE_S = 0.12
+"""Before any chain is known (no hold was long enough to judge its own settling), a
+short hold is trusted after this long: the rotor's own mode on its magnetic spring
+decays within tens of milliseconds on every unit the station has seen."""
+
+# The starting grid of the nominal chain (Hz, ratio): wide enough for any fixture.
+ROTOR_HZ_GRID = (25.0, 45.0, 80.0, 140.0, 250.0, 450.0, 800.0)
+LOAD_RATIO_GRID = (0.1, 0.5, 2.0, 8.0, 30.0, 120.0)
+BELT_HZ_GRID = (12.0, 25.0, 50.0, 100.0, 200.0, 400.0, 800.0)
+
+GRID_DAMPING = 0.3
+
+UNRESOLVED_SIGMA = {
+    "log_rotor_hz": 0.5, "log_load_ratio": 1.0, "log_belt_hz": 0.5,
+    "rotor_damping_ratio": 1.0, "belt_damping_ratio": 1.0, "load_damping_ratio": 2.0,
 }
-_DEFAULT_EXPERIMENT = (
-    "repeat the characterization with more speeds and currents, and trim steps of both signs, "
-    "so that the two term groups' signatures (order, current scaling, load angle) part"
-)
+"""Nominal parameters whose σ exceeds this (in their own units; logs: a factor e^σ) are
+reported as not resolved by the recording rather than as values."""
 
 
 class LocatedKind(StrEnum):
     HARMONIC = "harmonic"  # the nominal model's residual at one order and condition
     PARAMETER_DRIFT = "parameter_drift"  # a "constant" of the nominal model moves
+    UNEXPLAINED = "unexplained"  # what the best model still leaves, with no id for it
 
 
 @dataclass(frozen=True)
 class Located:
-    """One place where the recording and the nominal model disagree."""
+    """One place where the recording and a model disagree."""
 
     kind: LocatedKind
     chi2: float
@@ -117,15 +152,7 @@ class Located:
             "dof": self.dof,
             "confidence": self.confidence,
         }
-        if self.kind is LocatedKind.HARMONIC:
-            assert self.condition is not None
-            out.update(
-                order=self.order,
-                **self.condition.as_dict(),
-                residual_rms_mps2=self.residual_rms_mps2,
-                measured_rms_mps2=self.measured_rms_mps2,
-            )
-        else:
+        if self.kind is LocatedKind.PARAMETER_DRIFT:
             out.update(
                 parameter=self.parameter,
                 per_condition=[
@@ -134,28 +161,60 @@ class Located:
                 ],
                 trend=self.trend,
             )
+        else:
+            assert self.condition is not None
+            out.update(
+                order=self.order,
+                **self.condition.as_dict(),
+                residual_rms_mps2=self.residual_rms_mps2,
+                measured_rms_mps2=self.measured_rms_mps2,
+            )
         return out
 
 
 @dataclass(frozen=True)
-class Trial:
-    """One candidate term group tried in one round of naming."""
+class Candidate:
+    """One model tried: its fit and its residuals on held-out conditions."""
 
-    effect: Effect
+    spec: ModelSpec
     fit: Fit
     held: HeldOut
 
     @property
-    def bic(self) -> float:
-        return self.fit.bic
+    def effects(self) -> frozenset[Effect]:
+        return self.spec.effects
+
+    @property
+    def label(self) -> str:
+        return self.spec.label()
+
+
+@dataclass(frozen=True)
+class Test:
+    """Whether ``larger`` beats ``smaller`` by more than noise (the module note's rule)."""
+
+    smaller: Candidate
+    larger: Candidate
+    added: int  # parameters added
+    chi2_gain: float
+    held_gain: float
+    f_threshold: float
+    bic_threshold: float
+    noise: float  # the larger model's χ² per dof, floored at 1
+
+    @property
+    def significant(self) -> bool:
+        return (self.chi2_gain > max(self.f_threshold, self.bic_threshold)
+                and self.held_gain > self.added * self.noise)
 
 
 @dataclass(frozen=True)
 class Round:
-    base_held_chi2: float
-    base_bic: float
-    trials: tuple[Trial, ...]
-    chosen: Effect | None
+    """One size of the search: the models tried, the best, and the verdict."""
+
+    size: int
+    tried: tuple[Test, ...]
+    chosen: Candidate | None
 
 
 @dataclass(frozen=True)
@@ -165,6 +224,7 @@ class NamedEffect:
     effect: Effect
     parameters: dict[str, Any]
     held_out_gain_chi2: float
+    explains: tuple[tuple[ConditionKey, int, float, float], ...] = ()  # cells: χ² before/after
     alternatives: tuple[Effect, ...] = ()
     experiment: str | None = None
 
@@ -173,6 +233,11 @@ class NamedEffect:
             "id": self.effect.value,
             "parameters": self.parameters,
             "held_out_chi2_gain": round(self.held_out_gain_chi2, 1),
+            "evidence": [
+                {**c.as_dict(), "order": k, "chi2_before": round(b, 1),
+                 "chi2_after": round(a, 1)}
+                for c, k, b, a in self.explains
+            ],
         }
         if self.alternatives:
             out["cannot_separate_from"] = [e.value for e in self.alternatives]
@@ -181,27 +246,68 @@ class NamedEffect:
 
 
 @dataclass(frozen=True)
+class Finding:
+    """Something the nominal model cannot describe, said in words (and why)."""
+
+    text: str
+    parameter: str | None = None
+    chi2_gain: float = 0.0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"finding": self.text, "parameter": self.parameter,
+                "chi2_gain": round(self.chi2_gain, 1)}
+
+
+@dataclass(frozen=True)
+class Unexplained:
+    """What the chosen model leaves on held-out conditions beyond the noise."""
+
+    chi2: float
+    values: int  # held-out residual values (both parts of every phasor)
+    significant: bool
+
+    @property
+    def ratio(self) -> float:
+        return self.chi2 / max(self.values, 1)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"held_out_chi2": round(self.chi2, 1), "values": self.values,
+                "chi2_per_value": round(self.ratio, 3), "significant": self.significant}
+
+
+@dataclass(frozen=True)
 class Diagnosis:
     observations: Observations
-    nominal: Fit
-    nominal_held: HeldOut
-    extended: Fit
-    extended_held: HeldOut
+    nominal: Candidate
+    extended: Candidate
     located: tuple[Located, ...]
     # The optimal trims re-estimated per condition and their σ (per_condition_constants).
     constants: tuple[NDArray[np.float64], NDArray[np.float64]]
     effects: tuple[NamedEffect, ...]
     rounds: tuple[Round, ...]
+    findings: tuple[Finding, ...]
+    unexplained: Unexplained
+    judgements: tuple[ParameterJudgement, ...]
     warnings: tuple[str, ...] = field(default_factory=tuple)
 
     @property
+    def nominal_held(self) -> HeldOut:
+        return self.nominal.held
+
+    @property
+    def extended_held(self) -> HeldOut:
+        return self.extended.held
+
+    @property
     def mismatch(self) -> bool:
-        return bool(self.effects) or any(loc.kind is LocatedKind.HARMONIC for loc in self.located)
+        return bool(self.effects) or bool(self.findings) or self.unexplained.significant
 
     def held_out_rms(self, held: HeldOut) -> float:
-        """RMS in m/s² of the held-out residual (each harmonic's both parts)."""
-        physical = self.nominal.model.in_mps2(held.residuals)
-        return float(math.sqrt(np.mean(physical**2) * 2.0))
+        """Noise-weighted RMS in m/s² of a held-out residual: χ² over the sum of weights,
+        so it falls exactly when χ² does."""
+        weight = self.nominal.fit.model.weight
+        total = float(np.sum(weight**2)) * 2.0
+        return float(math.sqrt(held.total / total)) if total > 0 else 0.0
 
     def to_dict(self) -> dict[str, Any]:
         obs = self.observations
@@ -210,42 +316,209 @@ class Diagnosis:
             "located": [loc.as_dict(obs.conditions) for loc in self.located],
             "effects": [e.as_dict() for e in self.effects],
             "fit": {
-                "before": self.held_out_rms(self.nominal_held),
-                "after": self.held_out_rms(self.extended_held),
-                "before_chi2": round(self.nominal_held.total, 1),
-                "after_chi2": round(self.extended_held.total, 1),
-                "observations": self.nominal.observations,
+                "before": self.held_out_rms(self.nominal.held),
+                "after": self.held_out_rms(self.extended.held),
+                "before_chi2": round(self.nominal.held.total, 1),
+                "after_chi2": round(self.extended.held.total, 1),
+                "observations": int(self.nominal.held.residuals.size),
                 "held_out": "each condition in turn",
+                "rms": "inverse-variance weighted, m/s²",
             },
-            "nominal": nominal_parameters(self.nominal),
-            "model": sorted(e.value for e in self.extended.model.spec.effects),
+            "unexplained": self.unexplained.as_dict(),
+            "findings": [f.as_dict() for f in self.findings],
+            "nominal": nominal_parameters(self.nominal.fit, self.judgements),
             "conditions": [c.as_dict() for c in obs.conditions],
             "segments": obs.count,
+            "segments_settled_by_model": obs.model_settled,
+            "skipped": [s.as_dict() for s in obs.skipped],
             "orders": obs.orders,
             "warnings": list(self.warnings),
         }
 
 
 # --------------------------------------------------------------------------- fitting
-def _extra_starts(spec: ModelSpec, effect: Effect | None) -> dict[str, list[float]]:
-    extra: dict[str, list[float]] = {}
-    if effect is None:
-        extra["rotor_hz_at_1A"] = [40.0, 80.0, 250.0]
-        if spec.chain is ChainKind.BELT:
-            extra["belt_hz"] = [3.0, 8.0, 20.0, 60.0]
-    if effect is Effect.LOAD_RESONANCE:
-        extra["coupling_hz"] = [40.0, 80.0, 160.0, 320.0, 640.0]
-    return extra
+def _with(model: Model, base: NDArray[np.float64], values: dict[str, list[float]]
+          ) -> NDArray[np.float64]:
+    p = base.copy()
+    for name, v in values.items():
+        if model.layout.has(name):
+            p[model.layout.slices[name]] = v
+    return p
 
 
-def fit_nominal(obs: Observations) -> Fit:
-    model = Model(ModelSpec(chain_for(obs.metadata.gear_ratio)), obs)
-    return fit(model, starts_from(model, None, _extra_starts(model.spec, None)), keep=2)
+def _transplant(model: Model, base: Fit | None) -> NDArray[np.float64]:
+    """The model's start, with every block a base fit shares taken from it."""
+    p = model.layout.start()
+    if base is not None:
+        for block in base.model.layout.blocks:
+            if model.layout.has(block.name) and block.size == model.layout.block(block.name).size:
+                p[model.layout.slices[block.name]] = base.value(block.name)
+    return p
 
 
-def fit_with(obs: Observations, base: Fit, effect: Effect) -> Fit:
-    model = Model(base.model.spec.with_effect(effect), obs)
-    return fit(model, starts_from(model, base, _extra_starts(model.spec, effect)))
+def nominal_starts(model: Model) -> list[NDArray[np.float64]]:
+    """A grid over the chain's natural frequencies (and, for a belt, its inertia ratio),
+    each point with the linear parameters solved: the chain's response across speeds and
+    orders picks the basin."""
+    p0 = model.layout.start()
+    grid: Iterable[tuple[float, ...]]
+    if model.spec.chain is ChainKind.RIGID:
+        grid = ((f,) for f in ROTOR_HZ_GRID)
+        names: tuple[str, ...] = ("log_rotor_hz",)
+    else:
+        grid = itertools.product(ROTOR_HZ_GRID, LOAD_RATIO_GRID, BELT_HZ_GRID)
+        names = ("log_rotor_hz", "log_load_ratio", "log_belt_hz")
+    # Well damped at first: a resonance a little misplaced then costs a little, where a
+    # sharp one would rank a good grid point below every chain without a mode in band.
+    damped = _with(model, p0, {n: [GRID_DAMPING] for n in
+                               ("rotor_damping_ratio", "belt_damping_ratio", "load_damping_ratio")})
+    out = []
+    for point in grid:
+        out.append(_with(model, damped, {n: [math.log(v)] for n, v in zip(names, point,
+                                                                            strict=True)}))
+    return out
+
+
+ANGLE_GRID = np.linspace(-1.2, 1.2, 17)
+"""Load angles scanned per condition before Newton steps: large friction puts the right
+angle a radian from zero, past other minima."""
+
+
+def _refine_angles(model: Model, p: NDArray[np.float64], rounds: int = 3
+                   ) -> NDArray[np.float64]:
+    """Load angles per condition: a scan over ``ANGLE_GRID`` (each angle touches only its
+    own condition's rows, so one evaluation tries a value for all of them), then a few
+    Newton steps each, alternating with the linear solve."""
+    rho = model.layout.slices["load_angle_rad"]
+    cond = model.residual_conditions()
+    conditions = len(model.obs.conditions)
+    out = p.copy()
+    low, high = model.layout.bounds()
+    for _ in range(2):
+        out = solve_linear(model, out, passes=1, held=SCREEN_HELD)
+        best = np.full(conditions, np.inf)
+        chosen = out[rho].copy()
+        for value in (*ANGLE_GRID, None):
+            trial = out.copy()
+            if value is not None:
+                trial[rho] = value
+            r = np.nan_to_num(model.residuals(trial), nan=1e6)[cond >= 0]
+            per = np.bincount(cond[cond >= 0], weights=r**2, minlength=conditions)
+            better = per < best
+            best[better] = per[better]
+            chosen[better] = trial[rho][better]
+        out[rho] = chosen
+    for _ in range(rounds):
+        out = solve_linear(model, out, passes=1)
+        base = model.residuals(out)
+        shifted = out.copy()
+        shifted[rho] += 1e-4
+        d = (model.residuals(shifted) - base) / 1e-4
+        num = np.bincount(cond[cond >= 0], weights=(d * base)[cond >= 0], minlength=conditions)
+        den = np.bincount(cond[cond >= 0], weights=(d * d)[cond >= 0], minlength=conditions)
+        step = -num / np.maximum(den, 1e-12)
+        out[rho] = np.clip(out[rho] + np.clip(step, -0.5, 0.5), low[rho] + 1e-6,
+                           high[rho] - 1e-6)
+    return out
+
+
+@dataclass(frozen=True)
+class Nominal:
+    """The nominal model twice: with each segment's torque balance (the one judged) and
+    without it (load angles free), which nothing unmodelled can bend and which every
+    other model is also started from."""
+
+    balanced: Fit
+    free: Fit
+
+
+def fit_nominal(obs: Observations, *, previous: Nominal | None = None) -> Nominal:
+    """The nominal model from the best few grid points (module note), first with free load
+    angles, then with the model floor magnified where that chain has its modes, then with
+    the torque balance; that weighting is the one every model of this recording is then
+    judged by."""
+    chain = chain_for(obs.metadata.gear_ratio)
+    model = Model(ModelSpec(chain, dc_balance=False), obs)
+    starts = nominal_starts(model)
+    if previous is not None:
+        starts.append(_transplant(model, previous.free))
+    ranked = screen(model, starts)
+    refined = [_refine_angles(model, x) for _, x in ranked[:4]]
+    first = fit(model, refined, keep=3, max_nfev=80)
+    floored = obs.with_floor(model.magnification(first.params))
+    free = fit(Model(model.spec, floored), [first.params], keep=1, max_nfev=80)
+    return Nominal(_balanced(free, floored), free)
+
+
+def _balanced(free: Fit, obs: Observations, spec: ModelSpec | None = None) -> Fit:
+    model = Model(spec or ModelSpec(free.model.spec.chain), obs)
+    start = _transplant(model, free)
+    return fit(model, [start, _refine_angles(model, start)], keep=2, max_nfev=80)
+
+
+def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None) -> Fit:
+    """A model with more term groups than ``base``, started from it, from the unbent
+    nominal fit ``free`` and from each new group's own starting points; and, when the base
+    fits badly (it has bent its chain to hide what it lacks), from the chain grid again."""
+    model = Model(spec, obs)
+    start = _transplant(model, base)
+    starts = [start]
+    zeroed = start.copy()
+    zeroed[model.layout.slices["load_angle_rad"]] = 0.0
+    starts.append(zeroed)
+    estimated = []
+    for effect in spec.effects - base.model.spec.effects:
+        maker = GROUP_STARTS.get(effect)
+        if maker is not None:
+            starts += [_with(model, start, values) for values in maker(model, start)]
+        estimate = GROUP_ESTIMATES.get(effect)
+        if estimate is not None:
+            estimated += [_with(model, start, values) for values in estimate(model, start)]
+    result = fit(model, starts, keep=2, estimated=estimated)
+    if free is not None and base.chi2 > REGRID_CHI2 * base.dof:
+        # The unbent chain and load angles, with the new groups' linear parts solved: these
+        # start worse than the bent ones, so they get their own run.
+        unbent = _transplant(model, free)
+        again = fit(model, [unbent, *(_with(model, unbent, v) for e in spec.effects
+                                      - base.model.spec.effects if e in GROUP_STARTS
+                                      for v in GROUP_STARTS[e](model, unbent))], keep=2)
+        if again.chi2 < result.chi2:
+            result = again
+    return result
+
+
+# --------------------------------------------------------------------------- settling
+def settle_fallback(nominal: Fit) -> SettleFallback:
+    """Seconds the fitted chain needs to forget a change, per condition (None: longer
+    than any hold could wait).
+
+    Only modes the recording can resolve count: below twice the highest harmonic it
+    analyses. A mode far above (a stiff belt the data barely see) has a damping the fit
+    cannot know, and its ringing sits between the harmonics anyway.
+    """
+    model = nominal.model
+    rho = nominal.value("load_angle_rad")
+    angles = {(c.amplitude_mA, round(c.electrical_hz, 1)): float(r)
+              for c, r in zip(model.obs.conditions, rho, strict=True)}
+    top = 2.0 * model.obs.orders * float(np.max(np.abs(model.obs.omega))) / (2 * math.pi)
+
+    def settle(amplitude_mA: int, electrical_hz: float) -> float | None:
+        angle = angles.get((amplitude_mA, round(electrical_hz, 1)), 0.0)
+        modes = model.modes(nominal.params, amplitude_mA / 1000.0, angle)
+        rates = [2 * math.pi * f * z for f, z in modes if 0 < f <= top]
+        if not rates:
+            return PRIOR_SETTLE_S
+        slowest = min(rates)
+        if slowest <= 0:
+            return None
+        seconds = SETTLE_E_FOLDINGS / slowest
+        return seconds if seconds < 5.0 else None
+
+    return settle
+
+
+def _prior_settle(amplitude_mA: int, electrical_hz: float) -> float:
+    return PRIOR_SETTLE_S
 
 
 # --------------------------------------------------------------------------- locating
@@ -253,11 +526,13 @@ def _confidence(chi2: float, dof: int) -> float:
     return float(stats.chi2.cdf(chi2, dof)) if dof > 0 else 0.0
 
 
-def chi2_map(result: Fit) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
-    """A fit's χ² per condition and order, (C, K), and the degrees of freedom per
-    condition, (C,): both parts of every segment's phasor."""
+def chi2_map(result: Fit, residuals: NDArray[np.float64] | None = None
+             ) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """χ² per condition and order, (C, K), and the degrees of freedom per condition, (C,):
+    both parts of every segment's phasor (a fit's own residuals unless given)."""
     obs = result.model.obs
-    res = result.residuals.reshape(2, obs.count, obs.orders)
+    r = result.residuals if residuals is None else residuals
+    res = r[:result.model.harmonic_values].reshape(2, obs.count, obs.orders)
     per_segment = (res**2).sum(axis=0)  # (S, K)
     conditions = len(obs.conditions)
     chi2 = np.zeros((conditions, obs.orders))
@@ -266,11 +541,13 @@ def chi2_map(result: Fit) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
     return chi2, dof
 
 
-def locate_harmonics(nominal: Fit) -> list[Located]:
-    """Per condition and order: χ² of the nominal residual against the noise."""
-    obs = nominal.model.obs
-    chi2, dofs = chi2_map(nominal)
-    in_mps2 = nominal.model.in_mps2(nominal.residuals)
+def locate_harmonics(result: Fit, residuals: NDArray[np.float64] | None = None,
+                     kind: LocatedKind = LocatedKind.HARMONIC) -> list[Located]:
+    """Per condition and order: χ² of a residual against the noise."""
+    obs = result.model.obs
+    r = result.residuals if residuals is None else residuals
+    chi2, dofs = chi2_map(result, r)
+    in_mps2 = result.model.in_mps2(r)
     out: list[Located] = []
     for c, key in enumerate(obs.conditions):
         rows = obs.condition == c
@@ -283,7 +560,7 @@ def locate_harmonics(nominal: Fit) -> list[Located]:
             physical = in_mps2[:, rows, k]
             out.append(
                 Located(
-                    kind=LocatedKind.HARMONIC,
+                    kind=kind,
                     chi2=value,
                     dof=dof,
                     confidence=conf,
@@ -316,7 +593,7 @@ def per_condition_constants(nominal: Fit) -> tuple[NDArray[np.float64], NDArray[
     obs = nominal.model.obs
     conditions = len(obs.conditions)
     values = np.full((conditions, 3), np.nan)
-    sigmas = np.full((conditions, 3), np.nan)
+    errors = np.full((conditions, 3), np.nan)
     for c in range(conditions):
         sub = obs.subset(obs.condition == c)
         model = Model(nominal.model.spec, sub)
@@ -328,8 +605,7 @@ def per_condition_constants(nominal: Fit) -> tuple[NDArray[np.float64], NDArray[
                 p[model.layout.slices[block.name]] = nominal.value(block.name)
         p = solve_linear(model, p, passes=3)
         _, design = model.linear_design(p)
-        flat = design.reshape(design.shape[0], -1)
-        jac = np.concatenate([flat.real, flat.imag], axis=1).T
+        jac = design.T
         try:
             cov = np.linalg.inv(jac.T @ jac)
         except np.linalg.LinAlgError:
@@ -342,19 +618,19 @@ def per_condition_constants(nominal: Fit) -> tuple[NDArray[np.float64], NDArray[
         gb = ga + 1
         values[c] = trim_constants(p[sl["amp_offset_mA"]], p[sl["amp_gain_error"]])
         split_var = (cov[ga, ga] + cov[gb, gb] - 2 * cov[ga, gb]) / 4.0 * GAIN_UNITY**2
-        sigmas[c] = np.sqrt([cov[ia, ia], cov[ib, ib], max(split_var, 0.0)])
-    return values, sigmas
+        errors[c] = np.sqrt(np.maximum([cov[ia, ia], cov[ib, ib], split_var], 0.0))
+    return values, errors
 
 
-def locate_drift(values: NDArray[np.float64], sigmas: NDArray[np.float64],
+def locate_drift(values: NDArray[np.float64], errors: NDArray[np.float64],
                  conditions: tuple[ConditionKey, ...]) -> list[Located]:
     """Constants of the nominal model that differ between conditions beyond their σ
-    (``values``/``sigmas`` from ``per_condition_constants``)."""
+    (``values``/``errors`` from ``per_condition_constants``)."""
     amps = np.array([c.amplitude_mA for c in conditions], dtype=float)
     out: list[Located] = []
     for column, name in enumerate(("optimal_offset_a_mA", "optimal_offset_b_mA",
                                    "optimal_gain_split")):
-        v, s = values[:, column], sigmas[:, column]
+        v, s = values[:, column], errors[:, column]
         ok = np.isfinite(v) & np.isfinite(s) & (s > 0)
         if ok.sum() < 2:
             continue
@@ -365,7 +641,7 @@ def locate_drift(values: NDArray[np.float64], sigmas: NDArray[np.float64],
         conf = _confidence(chi2, dof)
         if conf < SIGNIFICANT_CONFIDENCE:
             continue
-        slope = np.polyfit(amps[ok], v[ok], 1, w=np.sqrt(w))[0]
+        slope = np.polyfit(amps[ok], v[ok], 1, w=np.sqrt(w))[0] if len(set(amps[ok])) > 1 else 0
         out.append(
             Located(
                 kind=LocatedKind.PARAMETER_DRIFT,
@@ -381,181 +657,365 @@ def locate_drift(values: NDArray[np.float64], sigmas: NDArray[np.float64],
     return out
 
 
+def bound_findings(judgements: Iterable[ParameterJudgement]) -> list[Finding]:
+    """The nominal parameters the data pull past a physical limit, in words."""
+    out = []
+    for j in judgements:
+        if j.state is not ParameterState.PUSHED:
+            continue
+        shown = _readable(j.name, j.bound if j.bound is not None else j.value)
+        out.append(Finding(
+            f"the nominal model cannot describe this recording: {shown[0]} sits at its "
+            f"physical limit {shown[1]} and the data pull it further (χ² would fall by "
+            f"{j.chi2_gain:.0f})", j.name, j.chi2_gain))
+    return out
+
+
+def _readable(name: str, value: float) -> tuple[str, str]:
+    if name.startswith("log_"):
+        return name[4:], f"{math.exp(value):.4g}"
+    return name, f"{value:.4g}"
+
+
 # --------------------------------------------------------------------------- naming
-def _supported(trial: Trial, base_held: float, base_bic: float) -> bool:
-    gain = base_held - trial.held.total
-    return gain > max(MIN_GAIN_CHI2, MIN_GAIN_FRACTION * base_held) and trial.bic < base_bic
+def compare(smaller: Candidate, larger: Candidate) -> Test:
+    """The nested-model test of the module note: F against the larger model's own noise
+    (floored at the measurement's), Schwarz's criterion, and a held-out gain."""
+    added = max(1, larger.fit.parameters - smaller.fit.parameters)
+    dof = larger.fit.dof
+    noise = max(1.0, larger.fit.chi2 / dof)
+    f_crit = float(stats.f.ppf(SIGNIFICANT_CONFIDENCE, added, dof))
+    return Test(
+        smaller=smaller,
+        larger=larger,
+        added=added,
+        chi2_gain=smaller.fit.chi2 - larger.fit.chi2,
+        held_gain=smaller.held.total - larger.held.total,
+        f_threshold=f_crit * added * noise,
+        bic_threshold=added * math.log(larger.fit.observations) * noise,
+        noise=noise,
+    )
 
 
-def name_effects(obs: Observations, nominal: Fit, nominal_held: HeldOut,
-                 progress: Callable[[str], None] | None = None
-                 ) -> tuple[Fit, HeldOut, list[NamedEffect], list[Round]]:
-    """Forward selection of term groups on held-out conditions (module note)."""
-    current, current_held = nominal, nominal_held
-    named: list[NamedEffect] = []
+class Search:
+    """Models by their set of term groups, fitted once each and kept for comparisons."""
+
+    def __init__(self, obs: Observations, nominal: Candidate, free: Fit,
+                 progress: Callable[[str], None] | None) -> None:
+        self.obs = obs
+        self.nominal = nominal
+        self.free = free
+        self.progress = progress
+        self.cache: dict[frozenset[Effect], Candidate] = {frozenset(): nominal}
+
+    def get(self, effects: frozenset[Effect]) -> Candidate:
+        if effects in self.cache:
+            return self.cache[effects]
+        # Start from the best fitted subset one group smaller.
+        bases = [self.cache[effects - {e}] for e in effects if effects - {e} in self.cache]
+        base = min(bases, key=lambda c: c.fit.chi2) if bases else self.nominal
+        if self.progress is not None:
+            self.progress("fitting " + " + ".join(sorted(e.value for e in effects)))
+        spec = replace(self.nominal.spec, effects=effects)
+        result = fit_spec(self.obs, spec, base.fit, self.free)
+        if Effect.SENSOR_CLOCK_DRIFT in effects:
+            # A sensor may hold its latest sample per SYNC (a sawtooth of delays) or stamp
+            # its own: both forms are tried, the better one kept.
+            other = fit_spec(self.obs, replace(spec, clock_wraps=not spec.clock_wraps),
+                             base.fit, self.free)
+            if other.chi2 < result.chi2:
+                result = other
+        candidate = Candidate(result.model.spec, result, held_out(result))
+        self.cache[effects] = candidate
+        return candidate
+
+    def best(self, candidates: Iterable[Candidate]) -> Candidate:
+        return min(candidates, key=lambda c: c.held.total)
+
+
+def _beam(search: Search, progress: Callable[[str], None] | None
+          ) -> tuple[Candidate, list[Round], tuple[Effect, ...]]:
+    """Forward selection with a beam of ``BEAM`` models per size (module note); also the
+    groups promising enough to combine and to rival."""
+    current = search.nominal
+    frontier = [search.nominal]
     rounds: list[Round] = []
-    excluded: set[Effect] = set()
-    while len(named) < MAX_EFFECTS:
-        trials: list[Trial] = []
-        for effect in CANDIDATES:
-            if effect in current.model.spec.effects or effect in excluded:
-                continue
-            if progress is not None:
-                progress(f"fitting {effect.value}")
-            candidate = fit_with(obs, current, effect)
-            trials.append(Trial(effect, candidate, held_out(candidate)))
-        supported = [t for t in trials if _supported(t, current_held.total, current.bic)]
-        supported.sort(key=lambda t: t.held.total)
-        chosen = supported[0] if supported else None
-        rounds.append(Round(current_held.total, current.bic, tuple(trials),
-                            chosen.effect if chosen else None))
+    candidates: tuple[Effect, ...] = tuple(Effect)
+    for size in range(1, MAX_EFFECTS + 1):
+        tried: dict[frozenset[Effect], Test] = {}
+        for parent in frontier:
+            for effect in candidates:
+                if effect in parent.effects:
+                    continue
+                effects = parent.effects | {effect}
+                if effects in tried:
+                    continue
+                tried[effects] = compare(parent, search.get(effects))
+        if size == 1:
+            ranked = sorted(tried.values(), key=lambda t: t.chi2_gain, reverse=True)
+            keep = [t for t in ranked if t.significant] + ranked[:PROMISING]
+            candidates = tuple(dict.fromkeys(next(iter(t.larger.effects)) for t in keep))
+        winners = [t for t in tried.values() if t.significant]
+        winners.sort(key=lambda t: t.larger.held.total)
+        chosen = None
+        for test in winners:
+            # It must beat the best model of the previous size, not only its own parent.
+            if compare(current, test.larger).significant:
+                chosen = test.larger
+                break
+        rounds.append(Round(size, tuple(tried.values()), chosen))
         if chosen is None:
             break
-        rivals = tuple(
-            t.effect for t in supported[1:]
-            if t.held.total < SEPARABLE_RATIO * chosen.held.total + MIN_GAIN_CHI2
-        )
-        excluded.update(rivals)
-        experiment = None
-        if rivals:
-            experiment = SEPARATING_EXPERIMENTS.get(
-                frozenset({chosen.effect, rivals[0]}), _DEFAULT_EXPERIMENT
-            )
-        named.append(
-            NamedEffect(
-                effect=chosen.effect,
-                parameters=effect_parameters(chosen.fit, chosen.effect),
-                held_out_gain_chi2=current_held.total - chosen.held.total,
-                alternatives=rivals,
-                experiment=experiment,
-            )
-        )
-        current, current_held = chosen.fit, chosen.held
-    return current, current_held, named, rounds
+        current = chosen
+        frontier = [t.larger for t in winners[:BEAM]]
+    return current, rounds, candidates
 
 
-def diagnose_observations(obs: Observations,
-                          progress: Callable[[str], None] | None = None) -> Diagnosis:
-    with threadpool_limits(limits=1, user_api="blas"):
-        if progress is not None:
-            progress("fitting the nominal model")
-        nominal = fit_nominal(obs)
-        nominal_held = held_out(nominal)
-        constants = per_condition_constants(nominal)
-        located = locate_harmonics(nominal) + locate_drift(*constants, obs.conditions)
-        extended, extended_held, named, rounds = name_effects(obs, nominal, nominal_held, progress)
-    warnings: list[str] = []
-    if any(e.alternatives for e in named):
-        warnings.append("some effects cannot be separated on these data; see each effect's "
-                        "separating_experiment")
-    return Diagnosis(
-        observations=obs,
-        nominal=nominal,
-        nominal_held=nominal_held,
-        extended=extended,
-        extended_held=extended_held,
-        located=tuple(located),
-        constants=constants,
-        effects=tuple(named),
-        rounds=tuple(rounds),
-        warnings=tuple(warnings),
-    )
+def _prune(search: Search, model: Candidate) -> Candidate:
+    """Drop any group the others make unnecessary (backward elimination)."""
+    changed = True
+    while changed and model.effects:
+        changed = False
+        for effect in sorted(model.effects):
+            smaller = search.get(model.effects - {effect})
+            if not compare(smaller, model).significant:
+                model = smaller
+                changed = True
+                break
+    return model
+
+
+def paired_excess(winner: HeldOut, rival: HeldOut) -> tuple[float, float]:
+    """How much more held-out χ² the rival leaves, and that sum's standard error."""
+    d = rival.residuals**2 - winner.residuals**2
+    return float(d.sum()), float(math.sqrt(d.size) * d.std())
+
+
+def unexplained_of(model: Candidate) -> Unexplained:
+    values = int(model.held.residuals.size)
+    chi2 = model.held.total
+    limit = UNEXPLAINED_RATIO * values + 4.0 * math.sqrt(2.0 * values)
+    return Unexplained(chi2, values, chi2 > limit)
+
+
+def _explained_cells(before: Candidate, after: Candidate
+                     ) -> tuple[tuple[ConditionKey, int, float, float], ...]:
+    """The located cells of ``before``'s held-out residual, with ``after``'s χ² there."""
+    b, dof = chi2_map(before.fit, before.held.residuals)
+    a, _ = chi2_map(after.fit, after.held.residuals)
+    conditions = before.fit.model.obs.conditions
+    cells = []
+    for c, key in enumerate(conditions):
+        for k in range(b.shape[1]):
+            if _confidence(float(b[c, k]), int(dof[c])) >= SIGNIFICANT_CONFIDENCE:
+                cells.append((key, k + 1, float(b[c, k]), float(a[c, k])))
+    cells.sort(key=lambda cell: cell[2] - cell[3], reverse=True)
+    return tuple(cells[:12])
+
+
+def _local(search: Search, around: frozenset[Effect], candidates: tuple[Effect, ...]
+           ) -> tuple[Candidate, list[Round]]:
+    """From a known answer, one group at a time: add the best that beats it, repeat.
+
+    What a second pass needs when only the weights moved: the first pass already
+    found which groups matter, and a full beam would fit them all again.
+    """
+    current = _prune(search, search.get(around))
+    rounds: list[Round] = []
+    while len(current.effects) < MAX_EFFECTS:
+        tried = tuple(compare(current, search.get(current.effects | {e}))
+                      for e in candidates if e not in current.effects)
+        winners = sorted((t for t in tried if t.significant), key=lambda t: t.larger.held.total)
+        chosen = winners[0].larger if winners else None
+        rounds.append(Round(len(current.effects) + 1, tried, chosen))
+        if chosen is None:
+            break
+        current = _prune(search, chosen)
+    return current, rounds
+
+
+def name_effects(search: Search, progress: Callable[[str], None] | None = None,
+                 around: tuple[frozenset[Effect], tuple[Effect, ...]] | None = None
+                 ) -> tuple[Candidate, list[NamedEffect], list[Round], Unexplained,
+                            tuple[Effect, ...]]:
+    """Search (a beam, or locally ``around`` a previous answer with its candidates), prune,
+    keep only ids that explain more than is left, find rivals."""
+    if around is None:
+        best, rounds, candidates = _beam(search, progress)
+    else:
+        candidates = around[1]
+        best, rounds = _local(search, around[0], candidates)
+    best = _prune(search, best)
+    left = unexplained_of(best)
+    if left.significant:
+        excess = left.chi2 - left.values
+        # An id must explain more of the mismatch than is left unexplained, or it may only
+        # be soaking up physics that has no id.
+        while best.effects:
+            gains = {e: search.get(best.effects - {e}).held.total - best.held.total
+                     for e in best.effects}
+            weakest = min(gains, key=lambda e: gains[e])
+            if gains[weakest] > excess:
+                break
+            best = search.get(best.effects - {weakest})
+        left = unexplained_of(best)
+    named: list[NamedEffect] = []
+    sig_cache = sigmas(best.fit) if best.effects else None
+    for effect in best.effects:
+        without = search.get(best.effects - {effect})
+        rivals = []
+        for other in candidates:
+            if other in best.effects:
+                continue
+            swapped = search.get((best.effects - {effect}) | {other})
+            excess_chi2, error = paired_excess(best.held, swapped.held)
+            if excess_chi2 < RIVAL_Z * error and compare(without, swapped).significant:
+                rivals.append(other)
+        assert sig_cache is not None
+        named.append(NamedEffect(
+            effect=effect,
+            parameters=GROUP_PARAMETERS[effect](best.fit, sig_cache),
+            held_out_gain_chi2=without.held.total - best.held.total,
+            explains=_explained_cells(without, best),
+            alternatives=tuple(rivals),
+            experiment=separating_experiment(effect, rivals[0]) if rivals else None,
+        ))
+    named.sort(key=lambda e: e.held_out_gain_chi2, reverse=True)
+    return best, named, rounds, left, candidates
+
+
+# --------------------------------------------------------------------------- the whole
+def _observe(timeline: Timeline) -> Observations:
+    """Holds that judge their own settling; if too few do, short holds on a prior."""
+    try:
+        return observe(timeline)
+    except NotDiagnosable:
+        return observe(timeline, settle_fallback=_prior_settle)
 
 
 def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None) -> Diagnosis:
     """The whole diagnosis of one recording's timeline."""
-    return diagnose_observations(observe(timeline), progress)
+    with threadpool_limits(limits=1, user_api="blas"):
+        if progress is not None:
+            progress("fitting the nominal model")
+        first = _observe(timeline)
+        fits = fit_nominal(first)
+        obs = observe(timeline, settle_fallback=settle_fallback(fits.free))
+        if obs.segments != first.segments:
+            if progress is not None:
+                progress(f"segments settled by the fitted chain: {obs.model_settled}")
+            fits = fit_nominal(obs, previous=fits)
+        return diagnose_observations(obs, progress, nominal=fits)
+
+
+def _reweighted(nominal: Nominal, chosen: Candidate) -> Nominal | None:
+    """The nominal model refitted with the floor magnified where the chosen model's chain
+    has its modes, when that moves the weights materially; else None.
+
+    A strong effect bends the nominal chain to hide it, so its modes, and the floor
+    placed on them, can be far from where the explaining model puts them; every model
+    of the recording must then be judged again with the better weights.
+    """
+    obs = nominal.balanced.model.obs
+    floored = obs.with_floor(chosen.fit.model.magnification(chosen.fit.params))
+    change = np.abs(np.log(floored.sigma / obs.sigma))
+    if float(np.quantile(change, 0.99)) < REWEIGHT_CHANGE:
+        return None
+    model = Model(nominal.free.model.spec, floored)
+    free = fit(model, [_transplant(model, nominal.free), _transplant(model, chosen.fit)],
+               keep=2, max_nfev=80)
+    return Nominal(_balanced(free, floored), free)
+
+
+def diagnose_observations(obs: Observations, progress: Callable[[str], None] | None = None,
+                          *, nominal: Nominal | None = None) -> Diagnosis:
+    with threadpool_limits(limits=1, user_api="blas"):
+        fits = nominal if nominal is not None else fit_nominal(obs)
+        around: tuple[frozenset[Effect], tuple[Effect, ...]] | None = None
+        for _ in range(2):
+            # Every model is judged with the weights the nominal fit settled (its floor).
+            nominal_fit = fits.balanced
+            base = Candidate(nominal_fit.model.spec, nominal_fit, held_out(nominal_fit))
+            search = Search(nominal_fit.model.obs, base, fits.free, progress)
+            extended, named, rounds, left, candidates = name_effects(search, progress, around)
+            if not extended.effects or around is not None:
+                break
+            around = (extended.effects, candidates)
+            again = _reweighted(fits, extended)
+            if again is None:
+                break
+            if progress is not None:
+                progress("judging again with the chosen model's modes weighted")
+            fits = again
+        obs = nominal_fit.model.obs
+        judgements = judge_parameters(nominal_fit, unresolved_sigma=UNRESOLVED_SIGMA)
+        findings = bound_findings(judgements)
+        constants = per_condition_constants(nominal_fit)
+        located = locate_harmonics(nominal_fit) + locate_drift(*constants, obs.conditions)
+        if left.significant:
+            located += locate_harmonics(extended.fit, extended.held.residuals,
+                                        LocatedKind.UNEXPLAINED)
+    warnings: list[str] = []
+    if any(e.alternatives for e in named):
+        warnings.append("some effects cannot be separated on these data; see each effect's "
+                        "separating_experiment")
+    if left.significant:
+        warnings.append(
+            f"a significant residual is left that no effect of the vocabulary explains "
+            f"(held-out χ² {left.chi2:.0f} for {left.values} values); see the located cells "
+            "of kind 'unexplained'")
+    if obs.model_settled:
+        warnings.append(f"{obs.model_settled} segments come from holds too short to judge "
+                        "their own settling; their start is the fitted chain's decay time")
+    return Diagnosis(
+        observations=obs,
+        nominal=base,
+        extended=extended,
+        located=tuple(located),
+        constants=constants,
+        effects=tuple(named),
+        rounds=tuple(rounds),
+        findings=tuple(findings),
+        unexplained=left,
+        judgements=tuple(judgements),
+        warnings=tuple(warnings),
+    )
 
 
 # --------------------------------------------------------------------------- reporting
-def _sigmas(result: Fit) -> NDArray[np.float64]:
-    """1σ of every parameter from the Jacobian, inflated by the Birge ratio when the
-    model does not reach the noise (its own misfit then dominates)."""
-    jac = result.jacobian
-    dof = max(1, result.observations - result.parameters)
-    birge = max(1.0, result.chi2 / dof)
-    try:
-        cov = np.linalg.pinv(jac.T @ jac) * birge
-    except np.linalg.LinAlgError:
-        return np.full(result.parameters, np.nan)
-    return np.sqrt(np.maximum(np.diag(cov), 0.0))
-
-
-def _complex_terms(values: NDArray[np.float64], sigma: NDArray[np.float64], scale: float
-                   ) -> tuple[float, float, float]:
-    """(magnitude, phase, σ of magnitude) of a (sin, cos) coefficient pair."""
-    mag = math.hypot(values[0], values[1])
-    phase = math.atan2(values[1], values[0])
-    return mag * scale, phase, math.hypot(sigma[0], sigma[1]) * scale
-
-
-def effect_parameters(result: Fit, effect: Effect) -> dict[str, Any]:
-    """The effect's fitted parameters in physical (or dimensionless, where only a ratio
-    is identifiable from acceleration) units, each with its 1σ."""
-    sig = _sigmas(result)
-    sl = result.model.layout.slices
-    rated_A = result.model.obs.metadata.rated_current_mA / 1000.0
-    out: dict[str, Any] = {}
-    if effect is Effect.FLUX_HARMONICS:
-        v, s = result.value("flux"), sig[sl["flux"]]
-        for i, j in enumerate(FLUX_ORDERS):
-            for p, phase in enumerate(("a", "b")):
-                mag, ph, err = _complex_terms(v[4 * i + 2 * p:4 * i + 2 * p + 2],
-                                              s[4 * i + 2 * p:4 * i + 2 * p + 2], 100.0)
-                out[f"order_{j}_phase_{phase}"] = {"relative_to_Lm1_percent": mag,
-                                                   "sigma_percent": err, "phase_rad": ph}
-    elif effect is Effect.CURRENT_DISTORTION:
-        v, s = result.value("distortion"), sig[sl["distortion"]]
-        for i, h in enumerate(DISTORTION_ORDERS):
-            for p, phase in enumerate(("a", "b")):
-                pair = v[4 * i + 2 * p:4 * i + 2 * p + 2]
-                mag = math.hypot(pair[0], pair[1]) * 100.0
-                err = math.hypot(*s[4 * i + 2 * p:4 * i + 2 * p + 2]) * 100.0
-                out[f"order_{h}_phase_{phase}"] = {
-                    "relative_to_fundamental_percent": mag, "sigma_percent": err,
-                    "phase_rad": math.atan2(-pair[1], pair[0]),
-                }
-    elif effect is Effect.DETENT_TORQUE:
-        v, s = result.value("detent"), sig[sl["detent"]]
-        for i, d in enumerate(DETENT_ORDERS):
-            mag, ph, err = _complex_terms(v[2 * i:2 * i + 2], s[2 * i:2 * i + 2],
-                                          100.0 / rated_A)
-            out[f"order_{d}"] = {"peak_percent_of_rated_holding_torque": mag,
-                                 "sigma_percent": err, "phase_rad": ph}
-    elif effect is Effect.LOAD_RESONANCE:
-        for name, key in (("coupling_hz", "coupling_resonance_hz"),
-                          ("coupling_damping_ratio", "damping_ratio"),
-                          ("coupling_inertia_fraction", "inertia_fraction_beyond_coupling")):
-            out[key] = float(result.value(name)[0])
-            out[f"{key}_sigma"] = float(sig[sl[name]][0])
-    elif effect is Effect.RELUCTANCE_TORQUE:
-        lam = float(result.value("reluctance")[0])
-        out["peak_percent_of_holding_torque_at_rated"] = lam * rated_A * 100.0
-        out["sigma_percent"] = float(sig[sl["reluctance"]][0]) * rated_A * 100.0
-    return out
-
-
-def nominal_parameters(result: Fit) -> dict[str, Any]:
-    """What the nominal model found, in the units a motion engineer uses."""
+def nominal_parameters(result: Fit, judgements: Iterable[ParameterJudgement] = ()
+                       ) -> dict[str, Any]:
+    """What the nominal model found, in the units a motion engineer uses, each with its
+    1σ, and the state of any that is not simply fitted."""
     obs = result.model.obs
+    model = result.model
     rated_A = obs.metadata.rated_current_mA / 1000.0
-    f1 = float(result.value("rotor_hz_at_1A")[0])
-    damping = float(result.value("rotor_damping_per_s")[0])
-    w_rated = 2 * math.pi * f1 * math.sqrt(rated_A)
+    sig = sigmas(result)
+    sl = model.layout.slices
     offsets = result.value("amp_offset_mA")
     gains = result.value("amp_gain_error")
     rho = result.value("load_angle_rad")
+    rho_sig = sig[sl["load_angle_rad"]]
+    f1 = math.exp(result.scalar("log_rotor_hz"))
+    f1_sig = f1 * float(sig[sl["log_rotor_hz"]][0])
     friction = [
-        {**c.as_dict(), "load_angle_rad": float(r),
+        {**c.as_dict(), "load_angle_rad": float(r), "load_angle_sigma_rad": float(s),
          "friction_percent_of_rated_holding_torque":
              100.0 * math.sin(abs(float(r))) * c.amplitude_mA / 1000.0 / rated_A}
-        for c, r in zip(obs.conditions, rho, strict=True)
+        for c, r, s in zip(obs.conditions, rho, rho_sig, strict=True)
     ]
+    states = {j.name: j for j in judgements if j.state is not ParameterState.FITTED}
+    a1 = result.scalar("sensor_a1_ms")
+    a2 = result.scalar("sensor_a2_ms2")
     out: dict[str, Any] = {
-        "rotor_natural_hz_at_rated_current": w_rated / (2 * math.pi),
-        "rotor_damping_ratio": damping / (2 * w_rated),
-        "sensor_delay_ms": float(result.value("delay_ms")[0]),
-        "angle_offset_rad": float(result.value("angle_offset_rad")[0]),
+        "chain": model.spec.chain.value,
+        "rotor_natural_hz_at_rated_current": f1 * math.sqrt(rated_A),
+        "rotor_natural_hz_sigma": f1_sig * math.sqrt(rated_A),
+        "rotor_damping_ratio": result.scalar("rotor_damping_ratio"),
+        "rotor_damping_ratio_sigma": float(sig[sl["rotor_damping_ratio"]][0]),
+        "sensor_delay_ms": a1,
+        "sensor_delay_ms_sigma": float(sig[sl["sensor_a1_ms"]][0]),
+        "sensor_bandwidth_hz": (1e3 / (2 * math.pi * math.sqrt(a2))) if a2 > 0 else None,
         "optimal_trims": {
             "offset_a_mA": -float(offsets[0]),
             "offset_b_mA": -float(offsets[1]),
@@ -563,10 +1023,29 @@ def nominal_parameters(result: Fit) -> dict[str, Any]:
             "gain_a": 2 * GAIN_UNITY * (1 + float(gains[1])) / (2 + float(gains[0] + gains[1])),
             "gain_b": 2 * GAIN_UNITY * (1 + float(gains[0])) / (2 + float(gains[0] + gains[1])),
         },
+        "optimal_trims_sigma": {
+            "offset_a_mA": float(sig[sl["amp_offset_mA"]][0]),
+            "offset_b_mA": float(sig[sl["amp_offset_mA"]][1]),
+        },
         "load_angles": friction,
+        "chi2_per_dof": result.chi2 / result.dof,
+        "states": {name: {"state": j.state.value, "value": j.value, "sigma": j.sigma,
+                          "bound": j.bound, "chi2_gain": j.chi2_gain}
+                   for name, j in states.items()},
     }
-    if result.model.spec.chain is ChainKind.BELT:
-        out["belt_hz"] = float(result.value("belt_hz")[0])
-        out["belt_damping_ratio"] = float(result.value("belt_damping_ratio")[0])
-        out["load_inertia_ratio"] = float(result.value("load_inertia_ratio")[0])
+    if model.spec.chain is ChainKind.BELT:
+        hz = math.exp(result.scalar("log_belt_hz"))
+        ratio = math.exp(result.scalar("log_load_ratio"))
+        out["belt_hz_motor_held"] = hz
+        out["belt_hz_sigma"] = hz * float(sig[sl["log_belt_hz"]][0])
+        out["belt_damping_ratio"] = result.scalar("belt_damping_ratio")
+        out["belt_damping_ratio_sigma"] = float(sig[sl["belt_damping_ratio"]][0])
+        out["load_damping_ratio"] = result.scalar("load_damping_ratio")
+        out["load_damping_ratio_sigma"] = float(sig[sl["load_damping_ratio"]][0])
+        out["load_inertia_ratio"] = ratio
+        out["load_inertia_ratio_sigma"] = ratio * float(sig[sl["log_load_ratio"]][0])
+        out["gear_ratio"] = obs.metadata.gear_ratio
+    modes = model.modes(result.params, rated_A)
+    out["chain_modes_at_rated_current"] = [{"frequency_hz": f, "damping_ratio": z}
+                                           for f, z in modes]
     return out

@@ -1,4 +1,4 @@
-"""Fitting a model to observations, and judging it on conditions held out of the fit.
+"""Fitting a model to observations, judging its parameters, and holding conditions out.
 
 The solver is scipy's bounded least squares with a Jacobian assembled from
 the model's structure: the linear parameters' columns come straight from the
@@ -7,26 +7,40 @@ model's design, the per-condition load angles share one finite difference
 nonlinear parameters are differenced one by one. A fit of the full model then
 costs tens of milliseconds per iteration instead of a second.
 
+A parameter that ends on one of its bounds is not a result. The bounds are
+physical (a filter cannot answer before it is asked, a damping ratio is not
+negative), so when the data pull a parameter past one, the model cannot
+describe the recording, and ``bound_findings`` says so with how much the
+data would gain; a parameter that merely rests on a bound the data do not
+press against (an ideal sensor's zero delay) is reported as resting there.
+
 Held-out residuals use the standard one-step approximation of leave-one-out
 refits: from the full fit, one Gauss-Newton step on the data without the
 condition, then the held-out condition's own load angle (a nuisance no other
-condition can inform) refitted on its data alone. At these signal-to-noise
-ratios the step lands where a full refit would (the tests compare both).
+condition can inform) refitted on its data alone.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, lsq_linear
 
-from station.diagnosis.model import Model
+from station.diagnosis.model import BlockKind, Model
 
-_MAX_NFEV = 60
+_MAX_NFEV = 40
+_FTOL = 1e-6
+"""Relative change of χ² at which a fit stops: a millionth of a χ² of thousands is far
+below anything a comparison of models resolves."""
 _STEP = 1e-6
+HELD_RCOND = 1e-4
+"""Singular values of the held-out step below this fraction of the largest are dropped."""
+PUSH_CHI2 = 9.0
+"""A bound pressed this hard (χ² it would give back, 3σ) is a finding, not a rest."""
 
 
 @dataclass(frozen=True)
@@ -37,6 +51,7 @@ class Fit:
     params: NDArray[np.float64]
     residuals: NDArray[np.float64]  # weighted, unit variance per part
     jacobian: NDArray[np.float64]
+    active: NDArray[np.int8]  # −1 at the lower bound, +1 at the upper, 0 inside
 
     @property
     def chi2(self) -> float:
@@ -51,12 +66,19 @@ class Fit:
         return int(self.residuals.size)
 
     @property
+    def dof(self) -> int:
+        return max(1, self.observations - self.parameters)
+
+    @property
     def bic(self) -> float:
         """Schwarz's criterion with known noise: χ² plus ln(n) per parameter."""
         return self.chi2 + self.parameters * math.log(self.observations)
 
     def value(self, name: str) -> NDArray[np.float64]:
         return self.params[self.model.layout.slices[name]]
+
+    def scalar(self, name: str) -> float:
+        return float(self.value(name)[0])
 
 
 def jacobian(model: Model, p: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -66,21 +88,16 @@ def jacobian(model: Model, p: NDArray[np.float64]) -> NDArray[np.float64]:
     lin = model.linear_index()
     if lin.size:
         _, design = model.linear_design(p)
-        flat = design.reshape(design.shape[0], -1)
-        out[:, lin] = np.concatenate([flat.real, flat.imag], axis=1).T
-    sl = model.layout.slices
-    rho = sl["load_angle_rad"]
+        out[:, lin] = design.T
+    rho = model.layout.slices["load_angle_rad"]
     shifted = p.copy()
     shifted[rho] += _STEP
     column = (model.residuals(shifted) - base) / _STEP
-    rows = model.residual_rows()
-    cond = model.obs.condition[rows]
+    cond = model.residual_conditions()
     out[:, rho] = 0.0
-    out[np.arange(base.size), rho.start + cond] = column
-    done = set(lin.tolist()) | set(range(rho.start, rho.stop))
-    for i in range(p.size):
-        if i in done:
-            continue
+    inside = cond >= 0
+    out[np.flatnonzero(inside), rho.start + cond[inside]] = column[inside]
+    for i in model.layout.indices(BlockKind.NONLINEAR):
         step = _STEP * max(1.0, abs(p[i]))
         shifted = p.copy()
         shifted[i] += step
@@ -88,72 +105,93 @@ def jacobian(model: Model, p: NDArray[np.float64]) -> NDArray[np.float64]:
     return out
 
 
-def solve_linear(model: Model, p: NDArray[np.float64], passes: int = 2) -> NDArray[np.float64]:
-    """The linear parameters that best fit, the others held (a couple of passes settle
-    the small cross terms between them)."""
+def solve_linear(model: Model, p: NDArray[np.float64], passes: int = 2,
+                 held: tuple[str, ...] = ()) -> NDArray[np.float64]:
+    """The linear parameters that best fit within their bounds, the others held (a couple
+    of passes settle the small cross terms between them); blocks named in ``held`` keep
+    their values too."""
     idx = model.linear_index()
+    keep = np.zeros(p.size, dtype=bool)
+    for name in held:
+        if model.layout.has(name):
+            keep[model.layout.slices[name]] = True
+    free = ~keep[idx]
     out = p.copy()
+    if not free.any():
+        return out
+    low, high = model.layout.bounds()
+    low, high = low[idx][free], high[idx][free]
     for _ in range(passes):
         at_zero, design = model.linear_design(out)
-        flat = design.reshape(design.shape[0], -1).T
-        a = np.vstack([flat.real, flat.imag])
-        b = -np.concatenate([at_zero.real.ravel(), at_zero.imag.ravel()])
-        out[idx] = np.linalg.lstsq(a, b, rcond=None)[0]
+        a = design[free].T
+        b = -at_zero - design[~free].T @ out[idx][~free]
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            break
+        solution = np.linalg.lstsq(a, b, rcond=None)[0]
+        if np.any(solution < low) or np.any(solution > high):
+            solution = lsq_linear(a, b, bounds=(low, high), method="bvls").x
+        out[idx[free]] = solution
     return out
 
 
-def fit(model: Model, starts: list[NDArray[np.float64]], *, keep: int = 2) -> Fit:
-    """Bounded least squares from the ``keep`` most promising starts; the best result.
-
-    Every start first gets its linear parameters solved, which is cheap and
-    ranks the starts well: the solver then runs only from the best few.
-    """
+def _inside(model: Model) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     low, high = model.layout.bounds()
     span = np.where(np.isfinite(low) & np.isfinite(high), high - low, 1.0)
     inside_low = np.where(np.isfinite(low), low + 1e-9 * span, -np.inf)
     inside_high = np.where(np.isfinite(high), high - 1e-9 * span, np.inf)
+    return inside_low, inside_high
+
+
+def chi2_at(model: Model, p: NDArray[np.float64]) -> float:
+    r = model.residuals(p)
+    value = float(r @ r)
+    return value if math.isfinite(value) else math.inf
+
+
+SCREEN_HELD = ("amp_gain_error",)
+"""Held at their start while starts are ranked: gain errors would otherwise stand in for a
+wrong chain (stiffness scales with the current as the rotor's frequency squared does)."""
+
+
+def screen(model: Model, starts: list[NDArray[np.float64]]
+           ) -> list[tuple[float, NDArray[np.float64]]]:
+    """Every start with its linear parameters solved, best first (cheap, and it ranks
+    the starts well)."""
+    inside_low, inside_high = _inside(model)
     screened = []
     for start in starts:
-        x0 = np.clip(solve_linear(model, np.clip(start, inside_low, inside_high)),
-                     inside_low, inside_high)
-        r = model.residuals(x0)
-        screened.append((float(r @ r), x0))
+        x0 = np.clip(solve_linear(model, np.clip(start, inside_low, inside_high),
+                                  held=SCREEN_HELD), inside_low, inside_high)
+        screened.append((chi2_at(model, x0), x0))
     screened.sort(key=lambda item: item[0])
+    return screened
+
+
+def fit(model: Model, starts: list[NDArray[np.float64]], *, keep: int = 2,
+        max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None) -> Fit:
+    """Bounded least squares from the ``keep`` most promising starts, and from every
+    ``estimated`` one (a start the data themselves point to, which a ranking by χ² before
+    the search could pass over); the best result."""
+    low, high = model.layout.bounds()
     best: Fit | None = None
-    for _, x0 in screened[:keep]:
+    chosen = screen(model, starts)[:keep] + screen(model, estimated or [])
+    for chi2, x0 in chosen:
+        if not math.isfinite(chi2):
+            continue
         result = least_squares(
             model.residuals, x0, jac=lambda p: jacobian(model, p), bounds=(low, high),
-            x_scale="jac", method="trf", max_nfev=_MAX_NFEV,
+            x_scale="jac", method="trf", max_nfev=max_nfev, ftol=_FTOL, xtol=_FTOL,
         )
-        candidate = Fit(model, result.x, result.fun, result.jac)
+        candidate = Fit(model, result.x, result.fun, result.jac,
+                        np.asarray(result.active_mask, dtype=np.int8))
         if best is None or candidate.chi2 < best.chi2:
             best = candidate
-    assert best is not None, "fit needs at least one start"
+    if best is None:
+        # Every start failed to evaluate: report the first as it is (the caller sees χ²).
+        x0 = np.clip(starts[0], *_inside(model))
+        r = np.nan_to_num(model.residuals(x0), nan=1e6, posinf=1e6, neginf=-1e6)
+        best = Fit(model, x0, r, np.zeros((r.size, x0.size)), np.zeros(x0.size, np.int8))
     return best
-
-
-def starts_from(model: Model, base: Fit | None, extra: dict[str, list[float]] | None = None
-                ) -> list[NDArray[np.float64]]:
-    """Starting points: the base fit's values where the blocks match (load angles
-    also from zero, since a model short of an effect bends them to hide it), and
-    one start per listed value of a block."""
-    template = model.layout.start()
-    if base is not None:
-        for block in base.model.layout.blocks:
-            if model.layout.has(block.name):
-                template[model.layout.slices[block.name]] = base.value(block.name)
-    starts = [template]
-    if base is not None:
-        zeroed = template.copy()
-        zeroed[model.layout.slices["load_angle_rad"]] = 0.0
-        starts.append(zeroed)
-    for name, values in (extra or {}).items():
-        for v in values:
-            for s in list(starts[:2]):
-                alt = s.copy()
-                alt[model.layout.slices[name]] = v
-                starts.append(alt)
-    return starts
 
 
 @dataclass(frozen=True)
@@ -173,16 +211,20 @@ def held_out(result: Fit) -> HeldOut:
     model = result.model
     r = result.residuals
     jac = result.jacobian
-    cond = model.obs.condition[model.residual_rows()]
+    cond = model.residual_conditions()
     rho = model.layout.slices["load_angle_rad"]
     conditions = len(model.obs.conditions)
     chi2 = np.zeros(conditions)
-    out = np.empty_like(r)
+    out = np.zeros_like(r)  # the prior is never held out: it stays 0 here
+    # Parameters resting on a bound stay there: a step would leave the physical range.
+    free = result.active == 0
     for c in range(conditions):
         inside = cond == c
-        others = [i for i in range(jac.shape[1]) if i != rho.start + c]
+        others = [i for i in range(jac.shape[1]) if i != rho.start + c and free[i]]
         j_out = jac[~inside][:, others]
-        step = -np.linalg.lstsq(j_out, r[~inside], rcond=None)[0]
+        # Directions the other conditions leave undetermined are not stepped along: a
+        # linear step there is wild, where a refit would stay put.
+        step = -np.linalg.lstsq(j_out, r[~inside], rcond=HELD_RCOND)[0]
         predicted = r[inside] + jac[inside][:, others] @ step
         local = jac[inside][:, rho.start + c]
         norm = float(local @ local)
@@ -191,3 +233,78 @@ def held_out(result: Fit) -> HeldOut:
         out[inside] = predicted
         chi2[c] = float(predicted @ predicted)
     return HeldOut(chi2, out)
+
+
+# --------------------------------------------------------------------------- judging
+class ParameterState(StrEnum):
+    FITTED = "fitted"
+    AT_LIMIT = "at_limit"  # on a physical bound the data do not press against
+    PUSHED = "pushed_past_limit"  # the data pull it past a physical bound: a finding
+    UNRESOLVED = "unresolved"  # the data do not constrain it
+
+
+@dataclass(frozen=True)
+class ParameterJudgement:
+    name: str
+    index: int
+    value: float
+    sigma: float
+    state: ParameterState
+    bound: float | None = None
+    chi2_gain: float = 0.0  # what freeing it past its bound would give back
+
+
+def covariance(result: Fit) -> NDArray[np.float64]:
+    """Parameter covariance from the Jacobian, inflated by the Birge ratio when the model
+    does not reach the noise (its own misfit then dominates)."""
+    jac = result.jacobian
+    birge = max(1.0, result.chi2 / result.dof)
+    with np.errstate(all="ignore"):
+        cov = np.linalg.pinv(jac.T @ jac, rcond=1e-12) * birge
+    return np.asarray(cov, dtype=np.float64)
+
+
+def sigmas(result: Fit) -> NDArray[np.float64]:
+    return np.sqrt(np.maximum(np.diag(covariance(result)), 0.0))
+
+
+def judge_parameters(result: Fit, *, unresolved_sigma: dict[str, float] | None = None
+                     ) -> list[ParameterJudgement]:
+    """Each nonlinear parameter's state: fitted, resting on or pushed past a bound, or
+    unresolved (σ above ``unresolved_sigma[name]``, in the parameter's own units)."""
+    model = result.model
+    lay = model.layout
+    low, high = lay.bounds()
+    jac = result.jacobian
+    gradient = jac.T @ result.residuals
+    with np.errstate(all="ignore"):
+        inverse = np.linalg.pinv(jac.T @ jac, rcond=1e-12)
+    sig = sigmas(result)
+    out: list[ParameterJudgement] = []
+    for block in lay.blocks:
+        if block.kind is BlockKind.LINEAR:
+            continue
+        sl = lay.slices[block.name]
+        for offset, i in enumerate(range(sl.start, sl.stop)):
+            name = block.name if block.size == 1 else f"{block.name}[{offset}]"
+            value = float(result.params[i])
+            side = int(result.active[i])
+            if side == 0:
+                span = high[i] - low[i]
+                near = 1e-6 * (span if math.isfinite(span) else 1.0)
+                side = -1 if value - low[i] <= near else 1 if high[i] - value <= near else 0
+            if side != 0:
+                # The χ² a free Gauss-Newton step on this parameter alone would give back.
+                gain = float(gradient[i] ** 2 * inverse[i, i])
+                pulls_out = gradient[i] * side < 0
+                state = (ParameterState.PUSHED if pulls_out and gain > PUSH_CHI2
+                         else ParameterState.AT_LIMIT)
+                out.append(ParameterJudgement(name, i, value, float(sig[i]), state,
+                                              float(low[i] if side < 0 else high[i]),
+                                              gain if pulls_out else 0.0))
+                continue
+            limit = (unresolved_sigma or {}).get(block.name)
+            state = (ParameterState.UNRESOLVED if limit is not None and sig[i] > limit
+                     else ParameterState.FITTED)
+            out.append(ParameterJudgement(name, i, value, float(sig[i]), state))
+    return out

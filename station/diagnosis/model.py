@@ -1,47 +1,54 @@
-"""The torque model of the paper, its mechanical chain, and the effects beyond it.
+"""The torque model of the paper, its mechanical chain, its sensor, and the effects beyond.
 
 The model is fitted as an *equation error* on the motion the sensor measured.
-Each segment's harmonics 1..K give the load's periodic motion; the chain of
-inertias and springs (rigid disk, or belt) maps it back to the rotor's motion
-and to the torque the rotor must have felt; the torque model, evaluated on
-that same rotor motion, says what torque the currents did make. The two must
-agree at every order. Evaluating the torque on the measured motion, instead of
-integrating the equations of motion, keeps the rotor's large-swing
-nonlinearity (a few tenths of an electrical radian at untrimmed offsets,
-which puts strong 3rd to 5th harmonics into any recording) inside the model at
-no cost: no nonlinear oscillation has to be solved, and the unknowns enter
-almost linearly.
+Each segment's harmonics 1..K give the load's periodic motion; the sensor's
+own response is undone; the chain of inertias and springs (a rigid disk, or
+the belt the fixture declares) maps the load's motion back to the rotor's
+motion and to the torque the rotor must have felt; the torque model,
+evaluated on that same rotor motion with the currents the drive made, says
+what torque the motor did make. The two must agree at every order.
+Evaluating the torque on the measured motion, instead of integrating the
+equations of motion, keeps the rotor's large-swing nonlinearity (a few tenths
+of an electrical radian at untrimmed offsets, which puts strong 3rd to 5th
+harmonics into any recording) inside the model at no cost, and the same holds
+for friction, which is evaluated on the load's measured velocity.
 
 The disagreement at each order is divided by its sensitivity to that order's
-acceleration (the linearised chain), so residuals are in m/s² like the
-measurement itself and weighting them by its uncertainty makes the fit close
-to the output-error maximum-likelihood one.
+acceleration (the linearised chain) and multiplied by the sensor's response,
+so residuals are in m/s² like the measurement itself; weighting them by its
+uncertainty makes the fit close to the output-error maximum-likelihood one.
 
 All torques are in units of the torque constant Kt (so in A): Kt itself and
 the inertias cannot both be known from an acceleration alone, only their
 ratios, and the parameters are chosen to be the identifiable ones (natural
-frequencies, damping ratios, relative harmonic amplitudes).
+frequencies, damping ratios, relative harmonic amplitudes). Scale parameters
+(frequencies, ratios) are fitted as logarithms: they span decades, and a
+relative step is what the data resolve.
 
 Sign conventions follow ``station.physics.motor`` and ICD.md §2: phase A
 carries cos x, phase B sin x, the rotor's electrical angle is x − ρ plus its
 oscillation, and a phasor Z of order k means Re(Z·e^{jkx}).
+
+Physics beyond the paper's model enters as *term groups*, one per id of
+CLI.md's vocabulary (``GROUPS``); each adds a few parameters to this one
+model, so any combination of them is a model too.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
 
 from station.core import GAIN_UNITY, Effect
-from station.diagnosis.observations import Observations
+from station.diagnosis.observations import MODEL_FLOOR, Observations
 
 GRID = 64
-"""Points per electrical period where the torque is evaluated: orders up to 31 alias-free."""
+"""Points per electrical period where torques are evaluated: orders up to 31 alias-free."""
 
 FLUX_ORDERS = (2, 3, 4, 5)
 """Harmonics j of the mutual inductances L1f, L2f (j = 1 is the fundamental)."""
@@ -52,37 +59,38 @@ DETENT_ORDERS = (4, 8)
 
 QUARTER = math.pi / 2.0
 
-LINEAR_BLOCKS = frozenset(
-    {"amp_offset_mA", "amp_gain_error", "flux", "distortion", "detent", "reluctance"}
-)
+COMMON_GAIN_SIGMA = 0.1
+"""A drive's current amplitude as calibrated at its factory: within ±10 % (1σ)."""
+
+SENSOR_MIN_BANDWIDTH = 0.4
+"""Of the SYNC rate: what ICD.md §3 promises of the sensor's own bandwidth."""
+SENSOR_MAX_DAMPING = 1.5
+"""Of the sensor's low-pass (a first-order one is a heavily damped second-order one)."""
 
 
 class ChainKind(StrEnum):
-    """The mechanics between rotor and sensor that the recording's fixture implies."""
+    """The mechanics between rotor and sensor that the recording's fixture declares."""
 
     RIGID = "rigid"  # sensor on a disk on the shaft (gear ratio 1)
     BELT = "belt"  # sensor on a load driven through a belt (gear ratio ≠ 1)
 
 
-CANDIDATES: tuple[Effect, ...] = (
-    Effect.FLUX_HARMONICS,
-    Effect.DETENT_TORQUE,
-    Effect.CURRENT_DISTORTION,
-    Effect.LOAD_RESONANCE,
-    Effect.RELUCTANCE_TORQUE,
-)
-"""Effects the diagnosis can fit as term groups, in a fixed order (ties resolve by it)."""
+class BlockKind(StrEnum):
+    LINEAR = "linear"  # solved by least squares at every start: the error is (nearly) linear
+    ANGLES = "angles"  # one per condition, each touching only its condition's rows
+    NONLINEAR = "nonlinear"
 
 
 @dataclass(frozen=True)
 class Block:
-    """A named run of parameters: where it sits, start values and bounds."""
+    """A named run of parameters: where it sits, start values, bounds, how it is solved."""
 
     name: str
     size: int
     start: float | tuple[float, ...]
     low: float = -np.inf
     high: float = np.inf
+    kind: BlockKind = BlockKind.NONLINEAR
 
 
 @dataclass
@@ -104,6 +112,9 @@ class Layout:
     def has(self, name: str) -> bool:
         return name in self.slices
 
+    def block(self, name: str) -> Block:
+        return next(b for b in self.blocks if b.name == name)
+
     def start(self) -> NDArray[np.float64]:
         out = np.empty(self.size)
         for b in self.blocks:
@@ -118,49 +129,147 @@ class Layout:
             high[self.slices[b.name]] = b.high
         return low, high
 
+    def indices(self, kind: BlockKind) -> NDArray[np.intp]:
+        parts = [np.arange(self.slices[b.name].start, self.slices[b.name].stop)
+                 for b in self.blocks if b.kind is kind]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.intp)
+
 
 @dataclass(frozen=True)
 class ModelSpec:
-    """Which chain and which effect term groups a model carries."""
+    """Which chain, which term groups, and the sensor clock's form when it drifts."""
 
     chain: ChainKind
     effects: frozenset[Effect] = frozenset()
+    clock_wraps: bool = True  # a drifting sensor holds its latest sample for each SYNC
+    # Whether each segment's mean torque must balance its drag. Without it the load angles
+    # are free nuisances: a start that nothing unmodelled can bend.
+    dc_balance: bool = True
 
     def with_effect(self, effect: Effect) -> ModelSpec:
-        return ModelSpec(self.chain, self.effects | {effect})
+        return replace(self, effects=self.effects | {effect})
+
+    def without(self, effect: Effect) -> ModelSpec:
+        return replace(self, effects=self.effects - {effect})
+
+    def label(self) -> str:
+        return " + ".join(sorted(e.value for e in self.effects)) or "nominal"
 
 
 def chain_for(gear_ratio: float) -> ChainKind:
     return ChainKind.RIGID if abs(gear_ratio - 1.0) < 1e-9 else ChainKind.BELT
 
 
-def layout_for(spec: ModelSpec, conditions: int) -> Layout:
-    """Parameter blocks of a model; effect blocks start at zero (the nominal model)."""
+def _log(value: float) -> float:
+    return math.log(value)
+
+
+def layout_for(spec: ModelSpec, obs: Observations) -> Layout:
+    """Parameter blocks of a model; effect blocks start where the effect is absent."""
     lay = Layout()
-    lay.add(Block("delay_ms", 1, 0.5, -3.0, 5.0))
-    lay.add(Block("angle_offset_rad", 1, 0.0, -0.5, 0.5))
-    lay.add(Block("load_angle_rad", conditions, 0.0, -1.3, 1.3))
-    lay.add(Block("amp_offset_mA", 2, 0.0, -2000.0, 2000.0))
-    lay.add(Block("amp_gain_error", 2, 0.0, -0.45, 0.45))
-    lay.add(Block("rotor_hz_at_1A", 1, 120.0, 3.0, 5000.0))
-    lay.add(Block("rotor_damping_per_s", 1, 50.0, 0.0, 5000.0))
+    t_ms = obs.metadata.sync_period_s * 1e3
+    # The sensor's own low-pass 1/(1 + a1·s + a2·s²): a1 its delay at low frequency, a2 its
+    # curvature. Both ≥ 0 (a causal, stable filter), and no slower than ICD.md lets it be:
+    # a sample is taken at its SYNC, through a bandwidth of at least 40 % of the SYNC rate.
+    w_min = 2.0 * math.pi * SENSOR_MIN_BANDWIDTH / obs.metadata.sync_period_s * 1e-3  # rad/ms
+    lay.add(Block("sensor_a1_ms", 1, 0.45 * t_ms, 0.0, 2.0 * SENSOR_MAX_DAMPING / w_min))
+    lay.add(Block("sensor_a2_ms2", 1, 0.1 * t_ms * t_ms, 0.0, 1.0 / w_min**2))
+    lay.add(Block("load_angle_rad", len(obs.conditions), 0.0, -1.45, 1.45, BlockKind.ANGLES))
+    # Linear blocks have physical bounds too: without them a drive making no current at
+    # all (gain error −100 %) and a floating rotor "explain" any motion.
+    lay.add(Block("amp_offset_mA", 2, 0.0, -2000.0, 2000.0, BlockKind.LINEAR))
+    lay.add(Block("amp_gain_error", 2, 0.0, -0.45, 0.45, BlockKind.LINEAR))
+    lay.add(Block("log_rotor_hz", 1, _log(120.0), _log(3.0), _log(8000.0)))
+    lay.add(Block("rotor_damping_ratio", 1, 0.05, 0.0, 4.0))
     if spec.chain is ChainKind.BELT:
-        lay.add(Block("load_inertia_ratio", 1, 10.0, 0.01, 1e4))
-        lay.add(Block("belt_hz", 1, 20.0, 0.5, 2000.0))
-        lay.add(Block("belt_damping_ratio", 1, 0.05, 0.0, 2.0))
-    if Effect.LOAD_RESONANCE in spec.effects:
-        lay.add(Block("coupling_inertia_fraction", 1, 0.5, 0.02, 0.98))
-        lay.add(Block("coupling_hz", 1, 150.0, 5.0, 3000.0))
-        lay.add(Block("coupling_damping_ratio", 1, 0.05, 0.0, 1.0))
-    if Effect.FLUX_HARMONICS in spec.effects:
-        lay.add(Block("flux", 4 * len(FLUX_ORDERS), 0.0))
-    if Effect.CURRENT_DISTORTION in spec.effects:
-        lay.add(Block("distortion", 4 * len(DISTORTION_ORDERS), 0.0))
-    if Effect.DETENT_TORQUE in spec.effects:
-        lay.add(Block("detent", 2 * len(DETENT_ORDERS), 0.0))
-    if Effect.RELUCTANCE_TORQUE in spec.effects:
-        lay.add(Block("reluctance", 1, 0.0))
+        lay.add(Block("log_load_ratio", 1, _log(3.0), _log(1e-3), _log(1e4)))
+        lay.add(Block("log_belt_hz", 1, _log(60.0), _log(1.0), _log(8000.0)))
+        lay.add(Block("belt_damping_ratio", 1, 0.05, 0.0, 3.0))
+        # The load's own bearings and seals: viscous drag on the load, as a damping ratio
+        # of the load on its belt (a disk's is part of the rotor's damping).
+        lay.add(Block("load_damping_ratio", 1, 0.05, 0.0, 10.0))
+    for effect in sorted(spec.effects):
+        for block in GROUP_BLOCKS[effect](spec, obs):
+            lay.add(block)
     return lay
+
+
+GroupBlocks = Callable[[ModelSpec, Observations], list[Block]]
+
+
+def _blocks_flux(spec: ModelSpec, obs: Observations) -> list[Block]:
+    # Harmonics of L1f, L2f relative to Lm1: a few percent on real motors.
+    return [Block("flux", 4 * len(FLUX_ORDERS), 0.0, -0.25, 0.25, BlockKind.LINEAR)]
+
+
+def _blocks_distortion(spec: ModelSpec, obs: Observations) -> list[Block]:
+    return [Block("distortion", 4 * len(DISTORTION_ORDERS), 0.0, -0.25, 0.25,
+                  BlockKind.LINEAR)]
+
+
+def _blocks_detent(spec: ModelSpec, obs: Observations) -> list[Block]:
+    # Cogging in Kt units (A): up to half the holding torque at 1 A.
+    return [Block("detent", 2 * len(DETENT_ORDERS), 0.0, -0.5, 0.5, BlockKind.LINEAR)]
+
+
+def _blocks_reluctance(spec: ModelSpec, obs: Observations) -> list[Block]:
+    # Nr·L1/Kt per A: the reluctance torque's peak at 1 A relative to the magnet's.
+    return [Block("reluctance", 1, 0.0, -0.25, 0.25, BlockKind.LINEAR)]
+
+
+def _blocks_resonance(spec: ModelSpec, obs: Observations) -> list[Block]:
+    return [
+        Block("coupling_fraction", 1, 0.5, 0.01, 0.99),
+        Block("log_coupling_hz", 1, _log(150.0), _log(5.0), _log(8000.0)),
+        Block("coupling_damping_ratio", 1, 0.05, 0.0, 2.0),
+    ]
+
+
+def _blocks_lag(spec: ModelSpec, obs: Observations) -> list[Block]:
+    t_ms = obs.metadata.sync_period_s * 1e3
+    return [Block("current_lag_ms", 2, 0.5 * t_ms, 0.0, 20.0 * t_ms)]
+
+
+def _blocks_friction(spec: ModelSpec, obs: Observations) -> list[Block]:
+    # Coulomb friction forward and reverse; its viscous part is the chain's damping.
+    return [
+        # Coulomb levels (Kt units, at the load) forward and reverse: never negative.
+        Block("friction_coulomb", 2, 0.0, 0.0, 5.0, BlockKind.LINEAR),
+        Block("log_friction_smoothing", 1, _log(0.02), _log(1e-4), _log(10.0)),
+    ]
+
+
+def _blocks_clock(spec: ModelSpec, obs: Observations) -> list[Block]:
+    drift = Block("clock_drift_ppm", 1, 0.0, -5000.0, 5000.0)
+    if not spec.clock_wraps:
+        return [drift]  # a constant part would be the sensor's delay again
+    return [drift, Block("clock_phase", 1, 0.5, -0.5, 1.5)]
+
+
+def _blocks_saturation(spec: ModelSpec, obs: Observations) -> list[Block]:
+    # Kt(|i|)/Kt(0) = 1 − D·u² + E·u⁴, u = |i|/I_rated: the first two terms of any smooth
+    # law even in the current, so a fall that steepens (or levels off) near rated current
+    # is followed whatever curve the iron has; kept where Kt stays positive.
+    return [Block("saturation", 2, 0.0, -0.5, 0.8, BlockKind.LINEAR)]
+
+
+def _blocks_eccentricity(spec: ModelSpec, obs: Observations) -> list[Block]:
+    return [Block("eccentricity", 2, 0.0, -0.3, 0.3, BlockKind.LINEAR)]
+
+
+GROUP_BLOCKS: dict[Effect, GroupBlocks] = {
+    Effect.FLUX_HARMONICS: _blocks_flux,
+    Effect.CURRENT_DISTORTION: _blocks_distortion,
+    Effect.DETENT_TORQUE: _blocks_detent,
+    Effect.RELUCTANCE_TORQUE: _blocks_reluctance,
+    Effect.LOAD_RESONANCE: _blocks_resonance,
+    Effect.CURRENT_LOOP_LAG: _blocks_lag,
+    Effect.FRICTION: _blocks_friction,
+    Effect.SENSOR_CLOCK_DRIFT: _blocks_clock,
+    Effect.MAGNETIC_SATURATION: _blocks_saturation,
+    Effect.ROTOR_ECCENTRICITY: _blocks_eccentricity,
+}
+"""Each vocabulary id's parameters, as the model adds them."""
 
 
 @dataclass(frozen=True)
@@ -175,62 +284,116 @@ class _Stage:
 
 
 @dataclass(frozen=True)
-class _Motion:
-    """What the error and its linear design are both built on, for one parameter set."""
+class Transfer:
+    """The chain per segment and order, linear in the load's angular acceleration α and
+    the friction torque F acting on the load: rotor angle θ = A·α + B·F, torque the
+    rotor must feel T = C·α + D·F."""
 
-    a: NDArray[np.complex128]  # load angular acceleration per order (table's frame)
-    torque_per_a: NDArray[np.complex128]  # torque the chain needs per unit of ``a``
-    te: NDArray[np.float64]  # rotor electrical angle on the grid
+    a: NDArray[np.complex128]
+    b: NDArray[np.complex128]
+    c: NDArray[np.complex128]
+    d: NDArray[np.complex128]
+
+
+@dataclass(frozen=True)
+class Motion:
+    """What the error, its linear design and its sensitivity are all built on."""
+
+    alpha: NDArray[np.complex128]  # load angular acceleration per order (S, K)
+    sensor: NDArray[np.complex128]  # the sensor's response per order, clock included (S, K)
+    transfer: Transfer
+    friction: NDArray[np.complex128]  # friction torque on the load per order (S, K)
+    friction_slope: NDArray[np.float64]  # mean dF/dv per segment (S,)
+    te: NDArray[np.float64]  # rotor electrical angle on the grid (S, N)
+    sin_te: NDArray[np.float64]
+    cos_te: NDArray[np.float64]
     i_a: NDArray[np.float64]
     i_b: NDArray[np.float64]
-    sensitivity: NDArray[np.complex128]  # d(error)/d(a)
+    modulation: NDArray[np.float64]  # once-per-revolution factor per segment (S, 1)
+    _powers: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
+        default_factory=dict)
+
+    def harmonic(self, j: int, shift: int = 0) -> tuple[NDArray[np.float64],
+                                                       NDArray[np.float64]]:
+        """cos and sin of j·(θe − shift·π/2) on the grid, by powers of e^{jθe}: every
+        term group needs several multiples of the rotor's angle, and trigonometry of
+        each would cost more than the rest of an evaluation."""
+        if j not in self._powers:
+            z = self.cos_te + 1j * self.sin_te
+            power = z
+            for _ in range(j - 1):
+                power = power * z
+            self._powers[j] = (power.real, power.imag)
+        c, s = self._powers[j]
+        turn = (j * shift) % 4  # e^{-i·turn·π/2}
+        if turn == 0:
+            return c, s
+        if turn == 1:
+            return s, -c
+        if turn == 2:
+            return -c, -s
+        return -s, c
 
 
 class Model:
-    """A model (nominal, or nominal plus effect groups) bound to one set of observations."""
+    """A model (nominal, or nominal plus term groups) bound to one set of observations."""
 
     def __init__(self, spec: ModelSpec, obs: Observations) -> None:
         self.spec = spec
         self.obs = obs
-        self.layout = layout_for(spec, len(obs.conditions))
+        self.layout = layout_for(spec, obs)
         meta = obs.metadata
         self.rotor_teeth = meta.rotor_teeth
         self.radius = meta.sensor_radius_m
         self.gear_ratio = meta.gear_ratio
+        self.rated_A = meta.rated_current_mA / 1000.0
         k = np.arange(1, obs.orders + 1, dtype=np.float64)
         self.k = k
         x = 2.0 * np.pi * np.arange(GRID) / GRID
         self.x = x
         self.synth = np.exp(1j * np.outer(k, x))  # (K, N): order k at grid point n
         self.analyse = 2.0 / GRID * np.exp(-1j * np.outer(x, k))  # (N, K)
-        self.s = 1j * obs.omega[:, None] * k[None, :]  # (S, K): d/dt of order k
+        # (S, K): d/dt of order k, rad/s
+        self.jw: NDArray[np.complex128] = np.asarray(1j * obs.omega[:, None] * k[None, :],
+                                                     dtype=np.complex128)
         # σ is the spread of the complex phasor; each of its two parts carries half.
         self.weight = math.sqrt(2.0) / np.maximum(obs.sigma, 1e-12)
-        trims = obs.trims
-        amp = obs.amplitude_A[:, None]
-        self.trim_offset_A = trims[:, :2] * 1e-3
-        self.trim_gain = trims[:, 2:] / GAIN_UNITY
-        self.cos_x = np.cos(x)[None, :]
-        self.sin_x = np.sin(x)[None, :]
-        self.amp = amp
-        # Harmonic waveforms of the currents, per distortion order (unscaled).
-        self._dist_waves = [
-            (np.cos(h * x), np.sin(h * x), np.cos(h * (x - QUARTER)), np.sin(h * (x - QUARTER)))
-            for h in DISTORTION_ORDERS
-        ]
+        self.trim_offset_A = obs.trims[:, :2] * 1e-3
+        self.trim_gain = obs.trims[:, 2:] / GAIN_UNITY
+        self.amp = obs.amplitude_A[:, None]
+        # Current harmonics on the grid: order 1 (the table) and the distortion orders.
+        self.current_orders = np.array([1, *DISTORTION_ORDERS], dtype=np.float64)
+        self.current_synth = np.exp(1j * np.outer(self.current_orders, x))  # (H, N)
+        self.load_speed = obs.load_speed[:, None]  # rad/s at the load
+        self._clock_n = self._clock_samples()
+        # The measured orders above K: part of the swing, never of the residual.
+        beyond = obs.beyond if obs.beyond is not None and obs.beyond.size else None
+        self.beyond = beyond
+        if beyond is not None:
+            kb = np.arange(obs.orders + 1, obs.orders + 1 + beyond.shape[1], dtype=np.float64)
+            self.k_beyond = kb
+            self.jw_beyond: NDArray[np.complex128] = np.asarray(
+                1j * obs.omega[:, None] * kb[None, :], dtype=np.complex128)
+            self.synth_beyond = np.exp(1j * np.outer(kb, x))
 
     # ------------------------------------------------------------------ pieces
-    def _chain(self, p: NDArray[np.float64]) -> list[_Stage]:
-        sl = self.layout.slices
+    def _p(self, p: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+        return p[self.layout.slices[name]]
+
+    def _scalar(self, p: NDArray[np.float64], name: str) -> float:
+        return float(p[self.layout.slices[name]][0])
+
+    def stages(self, p: NDArray[np.float64]) -> list[_Stage]:
+        """The chain from rotor to load in units of Kt (see the module note)."""
         nr = self.rotor_teeth
-        w1 = 2.0 * math.pi * p[sl["rotor_hz_at_1A"]][0]
+        w1 = 2.0 * math.pi * math.exp(self._scalar(p, "log_rotor_hz"))
         inertia = nr / (w1 * w1)  # μ with rotor (and rigidly attached mass) on Nr·I at 1 A
-        damping = p[sl["rotor_damping_per_s"]][0] * inertia
+        damping = 2.0 * self._scalar(p, "rotor_damping_ratio") * inertia * w1
         resonant = Effect.LOAD_RESONANCE in self.spec.effects
         if resonant:
-            frac = p[sl["coupling_inertia_fraction"]][0]
-            wc = 2.0 * math.pi * p[sl["coupling_hz"]][0]
-            zc = p[sl["coupling_damping_ratio"]][0]
+            frac = self._scalar(p, "coupling_fraction")
+            wc = 2.0 * math.pi * math.exp(self._scalar(p, "log_coupling_hz"))
+            zc = self._scalar(p, "coupling_damping_ratio")
         if self.spec.chain is ChainKind.RIGID:
             if not resonant:
                 return [_Stage(inertia, damping)]
@@ -241,11 +404,11 @@ class Model:
                 _Stage(mu_d, 0.0),
             ]
         n = self.gear_ratio
-        mu_l = p[sl["load_inertia_ratio"]][0] * inertia / (n * n)
-        wb = 2.0 * math.pi * p[sl["belt_hz"]][0]
+        mu_l = math.exp(self._scalar(p, "log_load_ratio")) * inertia / (n * n)
+        wb = 2.0 * math.pi * math.exp(self._scalar(p, "log_belt_hz"))
         kb = mu_l * wb * wb
-        cb = 2 * p[sl["belt_damping_ratio"]][0] * math.sqrt(kb * mu_l)
-        load = _Stage(mu_l, 0.0)
+        cb = 2 * self._scalar(p, "belt_damping_ratio") * math.sqrt(kb * mu_l)
+        load = _Stage(mu_l, 2.0 * self._scalar(p, "load_damping_ratio") * mu_l * wb)
         if not resonant:
             return [_Stage(inertia, damping, kb, cb, n), load]
         mu_p = frac * inertia
@@ -256,178 +419,536 @@ class Model:
             load,
         ]
 
-    def _transfer(
-        self, stages: Sequence[_Stage]
-    ) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
-        """Rotor angle and required motor torque per unit load angular acceleration, (S, K)."""
-        s = self.s
+    def transfer(self, stages: list[_Stage], s: NDArray[np.complex128] | None = None
+                 ) -> Transfer:
+        """Backwards from the load: each spring's twist carries the torque downstream of it
+        (at the modelled orders unless ``s`` gives others)."""
+        s = self.jw if s is None else np.asarray(s, dtype=np.complex128)
         last = stages[-1]
-        theta = np.asarray(1.0 / (s * s), dtype=np.complex128)
-        torque = np.asarray(last.inertia + last.damping / s, dtype=np.complex128)
+        theta_a = np.asarray(1.0 / (s * s), dtype=np.complex128)
+        theta_f = np.zeros_like(theta_a)
+        torque_a = np.asarray(last.inertia + last.damping / s, dtype=np.complex128)
+        torque_f = np.ones_like(theta_a)
         for st in reversed(stages[:-1]):
-            twist = torque / (st.spring + s * st.spring_damping)
-            theta = np.asarray((theta + twist) / st.ratio, dtype=np.complex128)
-            torque = np.asarray(
-                (st.inertia * s * s + st.damping * s) * theta + st.ratio * torque,
-                dtype=np.complex128,
-            )
-        return theta, torque
+            compliance = 1.0 / (st.spring + s * st.spring_damping)
+            theta_a = (theta_a + torque_a * compliance) / st.ratio
+            theta_f = (theta_f + torque_f * compliance) / st.ratio
+            own = st.inertia * s * s + st.damping * s
+            torque_a = own * theta_a + st.ratio * torque_a
+            torque_f = own * theta_f + st.ratio * torque_f
+        return Transfer(theta_a, theta_f, torque_a, torque_f)
 
-    def _currents(
-        self, p: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """Phase currents (A) on the grid of every segment, and the fundamental's amplitude."""
-        sl = self.layout.slices
-        amp_off = p[sl["amp_offset_mA"]] * 1e-3
-        gain = (1.0 + p[sl["amp_gain_error"]])[None, :] * self.trim_gain  # (S, 2)
-        ga = gain[:, :1] * self.amp
-        gb = gain[:, 1:] * self.amp
-        wave_a = np.broadcast_to(self.cos_x, (self.obs.count, GRID)).copy()
-        wave_b = np.broadcast_to(self.sin_x, (self.obs.count, GRID)).copy()
-        if "distortion" in sl:
-            c = p[sl["distortion"]]
-            for i, (ca, sa, cb, sb) in enumerate(self._dist_waves):
-                wave_a += c[4 * i] * ca + c[4 * i + 1] * sa
-                wave_b += c[4 * i + 2] * cb + c[4 * i + 3] * sb
-        i_a = (self.trim_offset_A[:, :1] + amp_off[0]) + ga * wave_a
-        i_b = (self.trim_offset_A[:, 1:] + amp_off[1]) + gb * wave_b
-        return i_a, i_b, 0.5 * (ga + gb)[:, 0]
-
-    def _torque(
-        self, p: NDArray[np.float64], te: NDArray[np.float64], i_a: NDArray[np.float64],
-        i_b: NDArray[np.float64],
-    ) -> NDArray[np.float64]:
-        """Eq. (1) in units of Kt: the magnet torque plus whatever effect groups are on."""
-        sl = self.layout.slices
-        s1 = np.sin(te)
-        c1 = np.cos(te)
-        u = i_b * c1 - i_a * s1
-        if "flux" in sl:
-            c = p[sl["flux"]]
-            for i, j in enumerate(FLUX_ORDERS):
-                ta = j * te
-                tb = j * (te - QUARTER)
-                u -= j * i_a * (c[4 * i] * np.sin(ta) + c[4 * i + 1] * np.cos(ta))
-                u -= j * i_b * (c[4 * i + 2] * np.sin(tb) + c[4 * i + 3] * np.cos(tb))
-        if "detent" in sl:
-            c = p[sl["detent"]]
-            for i, d in enumerate(DETENT_ORDERS):
-                u += c[2 * i] * np.sin(d * te) + c[2 * i + 1] * np.cos(d * te)
-        if "reluctance" in sl:
-            lam = p[sl["reluctance"]][0]
-            c2 = c1 * c1 - s1 * s1
-            s2 = 2.0 * s1 * c1
-            u += lam * (2.0 * c2 * i_a * i_b - s2 * (i_a * i_a - i_b * i_b))
-        return u
-
-    def _rotation(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
-        """Per order, what takes a measured phasor into the current table's angle frame:
-        the sensor's delay undone and the table's angle offset applied, (S, K)."""
-        sl = self.layout.slices
-        delay = p[sl["delay_ms"]][0] * 1e-3
-        psi = p[sl["angle_offset_rad"]][0]
-        out: NDArray[np.complex128] = np.exp(
-            1j * self.k[None, :] * (self.obs.omega[:, None] * delay - psi)
-        )
+    def sensor_response(self, p: NDArray[np.float64], beyond: bool = False
+                        ) -> NDArray[np.complex128]:
+        """What the sensor (its low-pass, its clock) makes of each order, (S, K); of the
+        orders above the modelled ones with ``beyond``."""
+        a1 = self._scalar(p, "sensor_a1_ms") * 1e-3
+        a2 = self._scalar(p, "sensor_a2_ms2") * 1e-6
+        s, k = (self.jw_beyond, self.k_beyond) if beyond else (self.jw, self.k)
+        out: NDArray[np.complex128] = 1.0 / (1.0 + a1 * s + a2 * s * s)
+        if Effect.SENSOR_CLOCK_DRIFT in self.spec.effects:
+            out = out * self.clock_factor(p, k)
         return out
 
-    def _motion(self, p: NDArray[np.float64]) -> _Motion:
-        """The measured motion carried back to the rotor, and the currents driving it."""
-        a = self.obs.phasors * self._rotation(p) / self.radius
-        theta, torque_per_a = self._transfer(self._chain(p))
-        ripple = ((theta * a) @ self.synth).real  # rotor angle ripple on the grid (mech. rad)
-        rho = p[self.layout.slices["load_angle_rad"]][self.obs.condition]
-        te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
-        i_a, i_b, i_fund = self._currents(p)
-        # d(error)/d(a): the magnet's spring acting on the rotor's swing, minus the chain.
-        stiffness = -(i_fund * np.cos(rho))[:, None] * self.rotor_teeth
-        return _Motion(a, torque_per_a, te, i_a, i_b, stiffness * theta - torque_per_a)
+    def _clock_samples(self) -> NDArray[np.float64]:
+        """Sample numbers spread over each segment, (S, M), where the clock is evaluated."""
+        span = self.obs.span.astype(np.float64)
+        frac = (np.arange(32) + 0.5) / 32
+        return span[:, :1] + (span[:, 1:] - span[:, :1]) * frac[None, :]
 
-    def _error(self, p: NDArray[np.float64], m: _Motion) -> NDArray[np.complex128]:
+    def sample_delay(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """How long before its SYNC each sample was taken (s), at ``_clock_n``.
+
+        A free-running sensor clock that is off by δ takes each sample a little
+        earlier or later than the last; a TPDO carries the latest sample taken
+        before its SYNC, so the lag is a sawtooth of one SYNC period. A sensor
+        that instead stamps its own samples drifts without bound.
+        """
+        t = self.obs.metadata.sync_period_s
+        drift = self._scalar(p, "clock_drift_ppm") * 1e-6
+        n = self._clock_n
+        if self.spec.clock_wraps:
+            phase = self._scalar(p, "clock_phase")
+            return np.asarray(t * np.mod(phase - n * drift, 1.0), dtype=np.float64)
+        middle = 0.5 * (float(self.obs.span[0, 0]) + float(self.obs.span[-1, 1]))
+        return np.asarray(-t * (n - middle) * drift, dtype=np.float64)
+
+    def clock_factor(self, p: NDArray[np.float64], k: NDArray[np.float64] | None = None
+                     ) -> NDArray[np.complex128]:
+        delay = self.sample_delay(p)  # (S, M)
+        k = self.k if k is None else k
+        phase = np.exp(-1j * self.obs.omega[:, None, None] * k[None, :, None]
+                       * delay[:, None, :])
+        out: NDArray[np.complex128] = phase.mean(axis=2)
+        return out
+
+    def _current_lag(self, p: NDArray[np.float64]) -> tuple[NDArray[np.complex128],
+                                                            NDArray[np.complex128]]:
+        """First-order current loop per phase at each current harmonic, (S, H) each."""
+        if Effect.CURRENT_LOOP_LAG not in self.spec.effects:
+            one = np.ones((self.obs.count, self.current_orders.size), dtype=np.complex128)
+            return one, one
+        tau = self._p(p, "current_lag_ms") * 1e-3
+        s = 1j * self.obs.omega[:, None] * self.current_orders[None, :]
+        return 1.0 / (1.0 + s * tau[0]), 1.0 / (1.0 + s * tau[1])
+
+    def current_coefficients(self, p: NDArray[np.float64]) -> tuple[
+            NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64],
+            NDArray[np.complex128]]:
+        """Each phase as DC plus harmonics: (DC (S, 1), harmonics (S, H)) for A and B."""
+        amp_off = self._p(p, "amp_offset_mA") * 1e-3
+        gain = (1.0 + self._p(p, "amp_gain_error"))[None, :] * self.trim_gain  # (S, 2)
+        ga = gain[:, :1] * self.amp
+        gb = gain[:, 1:] * self.amp
+        lag_a, lag_b = self._current_lag(p)
+        wave_a = np.zeros((self.obs.count, self.current_orders.size), dtype=np.complex128)
+        wave_b = np.zeros_like(wave_a)
+        wave_a[:, 0] = 1.0  # cos x
+        wave_b[:, 0] = -1j  # sin x
+        if self.layout.has("distortion"):
+            c = self._p(p, "distortion")
+            for i, h in enumerate(DISTORTION_ORDERS):
+                wave_a[:, i + 1] = c[4 * i] - 1j * c[4 * i + 1]
+                wave_b[:, i + 1] = (c[4 * i + 2] - 1j * c[4 * i + 3]) * np.exp(-1j * h * QUARTER)
+        dc_a = self.trim_offset_A[:, :1] + amp_off[0]
+        dc_b = self.trim_offset_A[:, 1:] + amp_off[1]
+        return dc_a, ga * lag_a * wave_a, dc_b, gb * lag_b * wave_b
+
+    def currents(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                        NDArray[np.float64]]:
+        dc_a, ac_a, dc_b, ac_b = self.current_coefficients(p)
+        i_a = dc_a + (ac_a @ self.current_synth).real
+        i_b = dc_b + (ac_b @ self.current_synth).real
+        return i_a, i_b
+
+    def modulation(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """1 + ε·cos(θ + φ) averaged over each segment's mechanical angles, (S, 1)."""
+        if not self.layout.has("eccentricity"):
+            return np.ones((self.obs.count, 1))
+        e = self._p(p, "eccentricity")
+        m = self.obs.mechanical
+        out: NDArray[np.float64] = (1.0 + e[0] * m.real - e[1] * m.imag)[:, None]
+        return out
+
+    def saturation(self, p: NDArray[np.float64], i_a: NDArray[np.float64],
+                   i_b: NDArray[np.float64]) -> NDArray[np.float64] | float:
+        """Kt relative to its low-current value at the instantaneous current magnitude."""
+        if not self.layout.has("saturation"):
+            return 1.0
+        d, e = (float(v) for v in self._p(p, "saturation"))
+        u2 = (i_a * i_a + i_b * i_b) / (self.rated_A * self.rated_A)
+        out: NDArray[np.float64] = 1.0 - u2 * (d - e * u2)
+        return out
+
+    def magnet_weights(self, p: NDArray[np.float64], m: Motion
+                       ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """∂(magnet torque)/∂i_A and ∂/∂i_B on the grid: −sin θe, cos θe and the flux's."""
+        pa = -m.sin_te
+        pb = m.cos_te
+        if self.layout.has("flux"):
+            c = self._p(p, "flux")
+            for i, j in enumerate(FLUX_ORDERS):
+                ca, sa = m.harmonic(j)
+                cb, sb = m.harmonic(j, 1)
+                pa = pa - j * (c[4 * i] * sa + c[4 * i + 1] * ca)
+                pb = pb - j * (c[4 * i + 2] * sb + c[4 * i + 3] * cb)
+        return pa, pb
+
+    def detent(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
+        if not self.layout.has("detent"):
+            return np.zeros_like(m.te)
+        c = self._p(p, "detent")
+        out = np.zeros_like(m.te)
+        for i, d in enumerate(DETENT_ORDERS):
+            cd, sd = m.harmonic(d)
+            out += c[2 * i] * sd + c[2 * i + 1] * cd
+        return out
+
+    @staticmethod
+    def reluctance_shape(m: Motion) -> NDArray[np.float64]:
+        """Eq. (3)'s τ_vr per unit of Nr·L1 with (4)-(6): ∂L/∂θ of the winding block."""
+        c2, s2 = m.harmonic(2)
+        return np.asarray(2.0 * c2 * m.i_a * m.i_b - s2 * (m.i_a * m.i_a - m.i_b * m.i_b),
+                          dtype=np.float64)
+
+    def torque(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
+        """Eq. (1) in units of Kt on the grid: magnet (with saturation and the flux's
+        harmonics), cogging and reluctance; eccentricity modulates the first two."""
+        pa, pb = self.magnet_weights(p, m)
+        magnet = m.i_a * pa + m.i_b * pb
+        made = self.saturation(p, m.i_a, m.i_b) * magnet + self.detent(p, m)
+        made = made * m.modulation
+        if self.layout.has("reluctance"):
+            made = made + self._scalar(p, "reluctance") * self.reluctance_shape(m)
+        out: NDArray[np.float64] = made
+        return out
+
+    def friction_torque(self, p: NDArray[np.float64], alpha: NDArray[np.complex128]
+                        ) -> tuple[NDArray[np.complex128], NDArray[np.float64],
+                                   NDArray[np.float64]]:
+        """Friction on the load evaluated on its measured velocity: per-order torque (S, K),
+        mean slope dF/dv (S,), and the velocity on the grid (S, N)."""
+        if not self.layout.has("friction_coulomb"):
+            zeros = np.zeros_like(alpha)
+            return zeros, np.zeros(self.obs.count), np.zeros((self.obs.count, GRID))
+        velocity = self.load_velocity(alpha)
+        shapes = self.friction_shapes(p, velocity)
+        c = self._p(p, "friction_coulomb")
+        force = c[0] * shapes[0] + c[1] * shapes[1]
+        slope = c[0] * shapes[2] + c[1] * shapes[3]
+        # The load's viscous part is in the chain already, as the load stage's damping.
+        return force @ self.analyse, slope.mean(axis=1), velocity
+
+    def load_velocity(self, alpha: NDArray[np.complex128]) -> NDArray[np.float64]:
+        """The load's angular velocity on the grid: its mean plus the measured ripple."""
+        ripple = ((alpha / self.jw) @ self.synth).real
+        out: NDArray[np.float64] = self.load_speed + ripple
+        return out
+
+    def friction_shapes(self, p: NDArray[np.float64], velocity: NDArray[np.float64]
+                        ) -> tuple[NDArray[np.float64], ...]:
+        """Coulomb friction per unit of its forward and reverse levels, and their slopes.
+
+        A smoothed sign, tanh(v/ε), splits into a forward part (1 + tanh)/2 and a
+        reverse part (1 − tanh)/2 so the two directions may differ; ε is relative to
+        the fastest mean load speed of the recording.
+        """
+        scale = float(np.max(np.abs(self.obs.load_speed)))
+        eps = math.exp(self._scalar(p, "log_friction_smoothing")) * scale
+        t = np.tanh(velocity / eps)
+        dt = (1.0 - t * t) / eps
+        fwd = 0.5 * (1.0 + t) * t
+        rev = 0.5 * (1.0 - t) * t
+        dfwd = 0.5 * dt + t * dt
+        drev = 0.5 * dt - t * dt
+        return fwd, rev, dfwd, drev
+
+    def motion(self, p: NDArray[np.float64]) -> Motion:
+        """The measured motion carried back to the rotor, and the currents driving it."""
+        sensor = self.sensor_response(p)
+        alpha = self.obs.phasors / (sensor * self.radius)
+        stages = self.stages(p)
+        transfer = self.transfer(stages)
+        force, slope, _ = self.friction_torque(p, alpha)
+        theta = transfer.a * alpha + transfer.b * force
+        ripple = (theta @ self.synth).real  # rotor angle ripple on the grid (mech. rad)
+        if self.beyond is not None:
+            above = self.beyond / (self.sensor_response(p, beyond=True) * self.radius)
+            swing = self.transfer(stages, self.jw_beyond).a * above
+            ripple = ripple + (swing @ self.synth_beyond).real
+        rho = self._p(p, "load_angle_rad")[self.obs.condition]
+        te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
+        i_a, i_b = self.currents(p)
+        return Motion(alpha, sensor, transfer, force, slope, te, np.sin(te), np.cos(te), i_a,
+                      i_b, self.modulation(p))
+
+    def torque_slope(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
+        """∂(torque made)/∂θe on the grid, every term included: the magnetic spring."""
+        da = -m.cos_te
+        db = -m.sin_te
+        if self.layout.has("flux"):
+            c = self._p(p, "flux")
+            for i, j in enumerate(FLUX_ORDERS):
+                ca, sa = m.harmonic(j)
+                cb, sb = m.harmonic(j, 1)
+                da = da - j * j * (c[4 * i] * ca - c[4 * i + 1] * sa)
+                db = db - j * j * (c[4 * i + 2] * cb - c[4 * i + 3] * sb)
+        slope = self.saturation(p, m.i_a, m.i_b) * (m.i_a * da + m.i_b * db)
+        if self.layout.has("detent"):
+            c = self._p(p, "detent")
+            for i, d in enumerate(DETENT_ORDERS):
+                cd, sd = m.harmonic(d)
+                slope = slope + d * (c[2 * i] * cd - c[2 * i + 1] * sd)
+        slope = slope * m.modulation
+        if self.layout.has("reluctance"):
+            lam = self._scalar(p, "reluctance")
+            c2, s2 = m.harmonic(2)
+            slope = slope + lam * (-4.0 * s2 * m.i_a * m.i_b - 2.0 * c2 * (m.i_a**2 - m.i_b**2))
+        out: NDArray[np.float64] = slope
+        return out
+
+    def sensitivity(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.complex128]:
+        """d(error)/d(α) per order: the model's own magnetic spring on the rotor's swing
+        minus the chain's need (friction linearised about its mean slope).
+
+        It must be the model's own, every term included: the residual is the Newton
+        step that would make the measured motion satisfy the model, and a model with a
+        partial sensitivity could shrink its residuals by, say, cancelling its spring
+        with a negative reluctance while the step still assumed the full spring.
+        """
+        stiff = (np.mean(self.torque_slope(p, m), axis=1) * self.rotor_teeth)[:, None]
+        t = m.transfer
+        drag = m.friction_slope[:, None] / self.jw
+        theta = t.a + t.b * drag
+        need = t.c + t.d * drag
+        out: NDArray[np.complex128] = stiff * theta - need
+        return out
+
+    def error(self, p: NDArray[np.float64], m: Motion,
+              made_grid: NDArray[np.float64] | None = None) -> NDArray[np.complex128]:
         """Torque the model makes minus torque the motion needs, per order, (S, K)."""
-        made = self._torque(p, m.te, m.i_a, m.i_b) @ self.analyse
-        out: NDArray[np.complex128] = made - m.torque_per_a * m.a
+        made = (self.torque(p, m) if made_grid is None else made_grid) @ self.analyse
+        t = m.transfer
+        out: NDArray[np.complex128] = made - (t.c * m.alpha + t.d * m.friction)
+        return out
+
+    def scale(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.complex128]:
+        """From equation error (Kt units) to weighted sensor units, (S, K)."""
+        out: NDArray[np.complex128] = (self.radius * m.sensor / self.sensitivity(p, m)
+                                       * self.weight)
         return out
 
     # ------------------------------------------------------------------ linear part
-    def linear_blocks(self) -> list[str]:
-        """Blocks the equation error depends on (almost) linearly: solved, not searched."""
-        return [b.name for b in self.layout.blocks if b.name in LINEAR_BLOCKS]
-
     def linear_index(self) -> NDArray[np.intp]:
-        sl = self.layout.slices
-        return np.concatenate([np.arange(sl[n].start, sl[n].stop) for n in self.linear_blocks()])
+        return self.layout.indices(BlockKind.LINEAR)
 
-    def linear_design(
-        self, p: NDArray[np.float64]
-    ) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
-        """(error at zero linear parameters, d error / d linear parameter), in weighted m/s².
-
-        Exact in the amplifier offsets, detent and the fundamental's gain errors;
-        the flux, distortion and reluctance bases use the current iterate's
-        currents, so a couple of passes settle their small cross terms.
-        """
-        sl = self.layout.slices
-        m = self._motion(p)
-        te, i_a, i_b = m.te, m.i_a, m.i_b
-        s1, c1 = np.sin(te), np.cos(te)
-        ga = self.trim_gain[:, :1] * self.amp
-        gb = self.trim_gain[:, 1:] * self.amp
+    def linear_bases(self, p: NDArray[np.float64], m: Motion) -> list[NDArray[np.float64]]:
+        """∂(torque made)/∂β on the grid for each torque-side linear parameter β, in
+        layout order; friction's (which act on the needed torque) come separately."""
+        lay = self.layout
+        pa, pb = self.magnet_weights(p, m)
+        magnet = m.i_a * pa + m.i_b * pb
+        sat = self.saturation(p, m.i_a, m.i_b)
+        mod = m.modulation
+        dsat_a: NDArray[np.float64] | float = 0.0
+        dsat_b: NDArray[np.float64] | float = 0.0
+        if lay.has("saturation"):
+            d, e = self._p(p, "saturation")
+            u2 = (m.i_a**2 + m.i_b**2) / self.rated_A**2
+            g = (-2.0 * d + 4.0 * e * u2) / self.rated_A**2
+            dsat_a, dsat_b = g * m.i_a, g * m.i_b
+        d_ia = mod * (sat * pa + dsat_a * magnet)
+        d_ib = mod * (sat * pb + dsat_b * magnet)
+        if lay.has("reluctance"):
+            lam = self._scalar(p, "reluctance")
+            c2, s2 = m.harmonic(2)
+            d_ia = d_ia + lam * (2.0 * c2 * m.i_b - 2.0 * s2 * m.i_a)
+            d_ib = d_ib + lam * (2.0 * c2 * m.i_a + 2.0 * s2 * m.i_b)
+        _, ac_a, _, ac_b = self.current_coefficients(p)
         bases: list[NDArray[np.float64]] = []
-        for name in self.linear_blocks():
+        for block in lay.blocks:
+            if block.kind is not BlockKind.LINEAR:
+                continue
+            name = block.name
             if name == "amp_offset_mA":
-                bases += [-1e-3 * s1, 1e-3 * c1]
+                bases += [1e-3 * d_ia, 1e-3 * d_ib]
             elif name == "amp_gain_error":
-                off = self.trim_offset_A + p[sl["amp_offset_mA"]][None, :] * 1e-3
-                gain = 1.0 + p[sl["amp_gain_error"]]
-                # ∂i/∂e is the phase's nominal waveform, distortion included.
-                bases += [-(i_a - off[:, :1]) / gain[0] * s1, (i_b - off[:, 1:]) / gain[1] * c1]
-            elif name == "flux":
-                for j in FLUX_ORDERS:
-                    ta, tb = j * te, j * (te - QUARTER)
-                    bases += [-j * i_a * np.sin(ta), -j * i_a * np.cos(ta),
-                              -j * i_b * np.sin(tb), -j * i_b * np.cos(tb)]
+                gain = 1.0 + self._p(p, "amp_gain_error")
+                bases += [d_ia * (ac_a @ self.current_synth).real / gain[0],
+                          d_ib * (ac_b @ self.current_synth).real / gain[1]]
             elif name == "distortion":
-                gain = (1.0 + p[sl["amp_gain_error"]])
-                for ca, sa, cb, sb in self._dist_waves:
-                    bases += [-gain[0] * ga * ca * s1, -gain[0] * ga * sa * s1,
-                              gain[1] * gb * cb * c1, gain[1] * gb * sb * c1]
+                lag_a, lag_b = self._current_lag(p)
+                ga = (1.0 + self._p(p, "amp_gain_error")[0]) * self.trim_gain[:, :1] * self.amp
+                gb = (1.0 + self._p(p, "amp_gain_error")[1]) * self.trim_gain[:, 1:] * self.amp
+                for i, h in enumerate(DISTORTION_ORDERS):
+                    za = ga[:, 0] * lag_a[:, i + 1]
+                    zb = gb[:, 0] * lag_b[:, i + 1] * np.exp(-1j * h * QUARTER)
+                    wave = self.current_synth[i + 1][None, :]
+                    bases += [d_ia * (za[:, None] * wave).real,
+                              d_ia * (-1j * za[:, None] * wave).real,
+                              d_ib * (zb[:, None] * wave).real,
+                              d_ib * (-1j * zb[:, None] * wave).real]
+            elif name == "flux":
+                scale = mod * sat
+                for j in FLUX_ORDERS:
+                    ca, sa = m.harmonic(j)
+                    cb, sb = m.harmonic(j, 1)
+                    bases += [-j * scale * m.i_a * sa, -j * scale * m.i_a * ca,
+                              -j * scale * m.i_b * sb, -j * scale * m.i_b * cb]
             elif name == "detent":
                 for d in DETENT_ORDERS:
-                    bases += [np.sin(d * te), np.cos(d * te)]
+                    cd, sd = m.harmonic(d)
+                    bases += [mod * sd, mod * cd]
             elif name == "reluctance":
-                bases.append(2.0 * np.cos(2 * te) * i_a * i_b - np.sin(2 * te) * (i_a**2 - i_b**2))
-        design = np.stack(bases) @ self.analyse  # (L, S, K)
-        scale = self.radius / m.sensitivity * self.weight
+                bases.append(self.reluctance_shape(m))
+            elif name == "saturation":
+                u2 = (m.i_a**2 + m.i_b**2) / self.rated_A**2
+                bases += [-mod * u2 * magnet, mod * u2 * u2 * magnet]
+            elif name == "eccentricity":
+                inner = sat * magnet + self.detent(p, m)
+                mech = self.obs.mechanical[:, None]
+                bases += [mech.real * inner, -mech.imag * inner]
+            elif name == "friction_coulomb":
+                bases += [np.zeros_like(m.te)] * block.size  # filled in linear_design
+        return bases
+
+    def linear_design(self, p: NDArray[np.float64]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(weighted residuals at zero linear parameters, d residuals / d linear
+        parameter, (L, n)), laid out as ``residuals``.
+
+        Exact in the amplifier offsets, cogging and friction levels on a disk; the
+        bases of products (flux, distortion, saturation, reluctance with the currents)
+        use the current iterate, so a couple of passes settle their cross terms.
+        """
+        m = self.motion(p)
+        bases = self.linear_bases(p, m)
+        stacked = np.stack(bases) if bases else np.zeros((0, *m.te.shape))
+        harmonic = np.asarray(stacked @ self.analyse, dtype=np.complex128)
+        dc = stacked.mean(axis=2)
+        lay = self.layout
+        if lay.has("friction_coulomb"):
+            velocity = self.load_velocity(m.alpha)
+            shapes = self.friction_shapes(p, velocity)
+            order = [b.name for b in lay.blocks if b.kind is BlockKind.LINEAR]
+            row = sum(lay.block(n).size for n in order[:order.index("friction_coulomb")])
+            gear = self.gear_ratio
+            for j in (0, 1):
+                harmonic[row + j] = -m.transfer.d * (shapes[j] @ self.analyse)
+                dc[row + j] = -gear * shapes[j].mean(axis=1)
+        scale = self.scale(p, m)
+        dc_scale = self.dc_weight()
         beta = p[self.linear_index()]
-        at_zero = self._error(p, m) - np.tensordot(beta, design, axes=1)
-        return at_zero * scale, design * scale[None, :, :]
+        made = self.torque(p, m)
+        err = self.error(p, m, made) - np.tensordot(beta, harmonic, axes=1)
+        err_dc = self.dc_error(p, m, made) - beta @ dc
+        # The prior is linear in the gain errors: its row is their mean over its σ.
+        prior = np.zeros((len(beta), 1))
+        gains = [i for i, n in enumerate(self._linear_names()) if n == "amp_gain_error"]
+        prior[gains, 0] = 0.5 / COMMON_GAIN_SIGMA
+        at_zero = self._flatten(err * scale, err_dc * dc_scale, np.zeros(1))
+        design = np.array([self._flatten(h * scale, d * dc_scale, q) for h, d, q in
+                           zip(harmonic, dc, prior, strict=True)]).reshape(len(beta), -1)
+        return at_zero, design
+
+    def _linear_names(self) -> list[str]:
+        return [b.name for b in self.layout.blocks if b.kind is BlockKind.LINEAR
+                for _ in range(b.size)]
+
+    def prior(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """What the drive's datasheet says without the recording: its current amplitude is
+        calibrated to a few percent. Only the gains' mean is held to that (their split is
+        what the recording measures): alone it is weakly identified (it trades against
+        the rotor's frequency), and a fit would wander along that valley."""
+        common = float(np.mean(self._p(p, "amp_gain_error")))
+        return np.array([common / COMMON_GAIN_SIGMA])
+
+    @staticmethod
+    def _flatten(harmonic: NDArray[np.complex128], dc: NDArray[np.float64],
+                 prior: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.concatenate([harmonic.real.ravel(), harmonic.imag.ravel(), dc, prior])
+
+    # ------------------------------------------------------------------ the DC balance
+    def dc_weight(self) -> NDArray[np.float64]:
+        """1/σ of each segment's torque balance: the model floor of the holding torque
+        (0 where the model leaves the balance out)."""
+        out: NDArray[np.float64] = 1.0 / (MODEL_FLOOR * self.amp[:, 0])
+        return out if self.spec.dc_balance else np.zeros_like(out)
+
+    def drag(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The mean torque the chain's own damping takes at each segment's speed, seen at
+        the motor (Kt units): the viscous drag its ripple damping implies."""
+        omega = self.obs.omega / self.rotor_teeth  # the rotor's mean speed, rad/s
+        total = np.zeros_like(omega)
+        speed, gear = omega, 1.0
+        for st in self.stages(p):
+            total = total + st.damping * speed * gear
+            speed, gear = speed * st.ratio, gear * st.ratio
+        return total
+
+    def dc_error(self, p: NDArray[np.float64], m: Motion,
+                 made: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """Mean torque made minus mean torque taken (drag, and friction when modelled),
+        per segment: at constant speed they must balance."""
+        grid = self.torque(p, m) if made is None else made
+        taken = self.drag(p)
+        if self.layout.has("friction_coulomb"):
+            velocity = self.load_velocity(m.alpha)
+            shapes = self.friction_shapes(p, velocity)
+            c = self._p(p, "friction_coulomb")
+            taken = taken + self.gear_ratio * (c[0] * shapes[0] + c[1] * shapes[1]).mean(axis=1)
+        out: NDArray[np.float64] = grid.mean(axis=1) - taken
+        return out
 
     # ------------------------------------------------------------------ residuals
+    def weighted_error(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
+        m = self.motion(p)
+        out: NDArray[np.complex128] = self.error(p, m) * self.scale(p, m)
+        return out
+
     def equation_error(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
         """The error as sensor acceleration (m/s²) per segment and order, (S, K)."""
-        m = self._motion(p)
-        out: NDArray[np.complex128] = self._error(p, m) / m.sensitivity * self.radius
+        out: NDArray[np.complex128] = self.weighted_error(p) / self.weight
         return out
 
     def residuals(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Weighted residuals (real and imaginary parts) for a least-squares solver."""
-        z = self.equation_error(p) * self.weight
-        return np.concatenate([z.real.ravel(), z.imag.ravel()])
+        """Weighted residuals for a least-squares solver: the harmonic errors' real and
+        imaginary parts, then each segment's torque balance."""
+        m = self.motion(p)
+        made = self.torque(p, m)
+        return self._flatten(self.error(p, m, made) * self.scale(p, m),
+                             self.dc_error(p, m, made) * self.dc_weight(), self.prior(p))
+
+    @property
+    def harmonic_values(self) -> int:
+        """How many of ``residuals`` are harmonic (the rest are torque balances)."""
+        return 2 * self.obs.count * self.obs.orders
 
     def predicted(self, p: NDArray[np.float64]) -> NDArray[np.complex128]:
         """The harmonics this model says the sensor should have measured (m/s²), (S, K)."""
-        out: NDArray[np.complex128] = self.obs.phasors - self.equation_error(p) / self._rotation(p)
+        out: NDArray[np.complex128] = self.obs.phasors - self.equation_error(p)
         return out
 
     def in_mps2(self, weighted: NDArray[np.float64]) -> NDArray[np.float64]:
         """Weighted residuals (as ``residuals`` lays them out) back in m/s², shape (2, S, K):
         real and imaginary parts of each segment's and order's residual."""
-        shaped = weighted.reshape(2, self.obs.count, self.obs.orders)
+        shaped = weighted[:self.harmonic_values].reshape(2, self.obs.count, self.obs.orders)
         out: NDArray[np.float64] = shaped / self.weight
         return out
 
     def residual_rows(self) -> NDArray[np.intp]:
-        """Segment index of every entry of ``residuals`` (for holding out conditions)."""
-        seg = np.repeat(np.arange(self.obs.count), self.obs.orders)
-        return np.concatenate([seg, seg])
+        """Segment index of every entry of ``residuals`` (−1 for the prior, which belongs
+        to no segment)."""
+        segments = np.arange(self.obs.count)
+        seg = np.repeat(segments, self.obs.orders)
+        return np.concatenate([seg, seg, segments, [-1]])
+
+    def residual_conditions(self) -> NDArray[np.intp]:
+        """Condition of every entry of ``residuals`` (−1 for the prior)."""
+        rows = self.residual_rows()
+        out: NDArray[np.intp] = np.where(rows >= 0, self.obs.condition[rows], -1)
+        return out
+
+    def magnification(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """How much the chain magnifies a relative torque error into a relative
+        acceleration error, per segment and order: (|spring part| + |need|) / |sens|,
+        1 far from any mode, about twice the quality factor on one."""
+        m = self.motion(p)
+        stiff = (np.mean(self.torque_slope(p, m), axis=1) * self.rotor_teeth)[:, None]
+        t = m.transfer
+        spring = np.abs(stiff * t.a)
+        need = np.abs(t.c)
+        out: NDArray[np.float64] = np.maximum(
+            (spring + need) / np.maximum(np.abs(self.sensitivity(p, m)), 1e-300), 1.0)
+        return out
+
+    # ------------------------------------------------------------------ physics out
+    def rotor_hz(self, p: NDArray[np.float64], amplitude_A: float,
+                 load_angle_rad: float = 0.0) -> float:
+        """The rotor's own natural frequency on its magnetic spring at a current."""
+        f1 = math.exp(self._scalar(p, "log_rotor_hz"))
+        return f1 * math.sqrt(max(amplitude_A * math.cos(load_angle_rad), 1e-9))
+
+    def modes(self, p: NDArray[np.float64], amplitude_A: float,
+              load_angle_rad: float = 0.0) -> list[tuple[float, float]]:
+        """(frequency Hz, damping ratio) of the chain on its magnetic spring at a current."""
+        stages = self.stages(p)
+        n = len(stages)
+        mass = np.diag([st.inertia for st in stages])
+        stiff = np.zeros((n, n))
+        damp = np.diag([st.damping for st in stages])
+        stiff[0, 0] = self.rotor_teeth * amplitude_A * math.cos(load_angle_rad)
+        for i, st in enumerate(stages[:-1]):
+            for matrix, coeff in ((stiff, st.spring), (damp, st.spring_damping)):
+                matrix[i, i] += coeff * st.ratio * st.ratio
+                matrix[i, i + 1] -= coeff * st.ratio
+                matrix[i + 1, i] -= coeff * st.ratio
+                matrix[i + 1, i + 1] += coeff
+        inv_m = np.linalg.inv(mass)
+        state = np.block([[np.zeros((n, n)), np.eye(n)], [-inv_m @ stiff, -inv_m @ damp]])
+        out = []
+        for lam in np.linalg.eigvals(state):
+            if lam.imag > 0:
+                wn = abs(lam)
+                out.append((float(wn / (2 * math.pi)), float(-lam.real / wn)))
+        return sorted(out)

@@ -4,18 +4,25 @@ A condition is one operating point (current amplitude, signed speed). The
 diagnosis compares models across conditions, so it keeps every segment, not
 only those of the condition a calibration would use, and it keeps orders up
 to 8: the effects it looks for live above the two orders the paper uses.
+
+Besides the phasors, each segment carries what the slower physics needs:
+where the rotor was mechanically (a once-per-revolution effect modulates the
+harmonics with it), which samples it spans (a drifting sensor clock shifts
+them by an amount that grows with the sample number) and how fast the load
+turns (friction depends on the load's velocity, mean plus ripple).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from station.analysis.pipeline import AnalysisOptions, group_conditions, measure
-from station.analysis.segments import Segment
+from station.analysis.harmonics import Harmonics
+from station.analysis.pipeline import AnalysisOptions, Measured, group_conditions, measure
+from station.analysis.segments import Rejected, Segment, SettleFallback, Settling
 from station.analysis.timeline import Timeline
 from station.errors import InputError
 from station.recording import RecordingMetadata
@@ -23,8 +30,40 @@ from station.recording import RecordingMetadata
 DIAGNOSIS_ORDERS = 8
 """Harmonic orders of the electrical frequency that a diagnosis models and maps."""
 
+DEMODULATED_ORDERS = 16
+"""Orders fitted when demodulating (as far as the sampling allows): a rough unit swings
+far enough to put energy above order 8, and left in the residual it would both inflate
+the noise estimate and, where samples are missing, leak into the orders kept."""
+
+BEYOND_NYQUIST = 0.4
+"""Orders above the modelled ones enter the motion only below this fraction of the
+sample rate, where the sensor's harmonics are not aliases."""
+
+MODEL_FLOOR = 0.01
+"""Relative uncertainty of any model's torque balance: how far a model of a real chain
+(or another simulator's integration of it) can be trusted. Applied to each phasor times
+the chain's magnification of a torque error there (``Observations.with_floor``): far
+from a mode an acceleration known to 1 %, near a lightly damped one much less. Without
+it every high-SNR recording would be a mismatch."""
+
 MIN_CONDITIONS = 3
 """Fewer conditions than this cannot hold one out and still fit the rest."""
+
+NEEDED_SCHEDULE = (
+    "a characterization recording is needed: several speeds in both directions, several "
+    "currents and small trim steps at each (`station characterize SERIAL`, or "
+    "`station sim record OUT --schedule characterization`)"
+)
+
+MAX_CLIPPED = 0.01
+"""Fraction of a segment's samples that may sit at the sensor's full scale. Clipped
+samples are left out of the fit, and a few at the peaks cost only precision; beyond
+this the samples left are the quiet part of each period, and the phasors they give are
+both biased and ill-conditioned."""
+
+_MECHANICAL_SAMPLES = 33
+"""Points per segment over which the mechanical-angle average is taken (exact for a
+line; the angle is a line within a segment)."""
 
 
 class NotDiagnosable(InputError):
@@ -54,6 +93,19 @@ class ConditionKey:
 
 
 @dataclass(frozen=True)
+class Skipped:
+    """A stretch of steady motion the diagnosis could not use, and why."""
+
+    start_s: float
+    stop_s: float
+    reason: str
+
+    def as_dict(self) -> dict[str, float | str]:
+        return {"start_s": round(self.start_s, 3), "stop_s": round(self.stop_s, 3),
+                "reason": self.reason}
+
+
+@dataclass(frozen=True)
 class Observations:
     """Per-segment arrays (S segments, K orders) and the conditions they belong to.
 
@@ -70,9 +122,19 @@ class Observations:
     omega: NDArray[np.float64]  # (S,) signed electrical angular speed, rad/s
     trims: NDArray[np.float64]  # (S, 4) offset A, offset B (mA), gain A, gain B (1/10000)
     phasors: NDArray[np.complex128]  # (S, K)
-    sigma: NDArray[np.float64]  # (S, K)
+    sigma: NDArray[np.float64]  # (S, K): the noise and the model floor, what fits weigh by
+    noise: NDArray[np.float64]  # (S, K): the sensor's noise alone
     time_s: NDArray[np.float64]  # (S,) mid-segment instant from the first SYNC
+    # (S, 2) first and one-past-last sample of each segment (SYNC numbers from the first)
+    span: NDArray[np.int64]
+    # (S,) mean of e^{jθ} over the segment, θ the rotor's mechanical angle from the
+    # position demand (zero where the demand is zero: the phase is arbitrary, not the shape)
+    mechanical: NDArray[np.complex128]
     segments: tuple[Segment, ...]
+    skipped: tuple[Skipped, ...] = ()
+    # (S, E) measured harmonics of orders K+1 … K+E: not modelled, but part of the motion
+    # the torque is evaluated on (zero where an order lies beyond what the sampling shows)
+    beyond: NDArray[np.complex128] | None = None
 
     @property
     def orders(self) -> int:
@@ -81,6 +143,24 @@ class Observations:
     @property
     def count(self) -> int:
         return int(self.phasors.shape[0])
+
+    @property
+    def load_speed(self) -> NDArray[np.float64]:
+        """Mean angular speed of the load that carries the sensor (rad/s, signed)."""
+        meta = self.metadata
+        out: NDArray[np.float64] = self.omega / meta.rotor_teeth * meta.gear_ratio
+        return out
+
+    def with_floor(self, magnification: NDArray[np.float64]) -> Observations:
+        """The same observations with the model floor scaled per phasor by how much the
+        chain magnifies a torque error into acceleration there (1 far from any mode)."""
+        floor = MODEL_FLOOR * np.abs(self.phasors) * magnification
+        return replace(self, sigma=np.sqrt(self.noise**2 + floor**2))
+
+    @property
+    def model_settled(self) -> int:
+        """Segments whose settling came from the chain's model (too short to judge)."""
+        return sum(1 for s in self.segments if s.settling is Settling.MODEL)
 
     def subset(self, keep: NDArray[np.bool_]) -> Observations:
         """The segments where ``keep`` is true, conditions renumbered."""
@@ -95,49 +175,149 @@ class Observations:
             trims=self.trims[keep],
             phasors=self.phasors[keep],
             sigma=self.sigma[keep],
+            noise=self.noise[keep],
             time_s=self.time_s[keep],
+            span=self.span[keep],
+            mechanical=self.mechanical[keep],
             segments=tuple(s for s, k in zip(self.segments, keep, strict=True) if k),
+            skipped=self.skipped,
+            beyond=None if self.beyond is None else self.beyond[keep],
         )
 
 
-def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS) -> Observations:
+def mechanical_phasor(segment: Segment, rotor_teeth: int) -> complex:
+    """Mean of e^{jθ} over a segment, θ the mechanical angle of the position demand.
+
+    One mechanical revolution is 4·m·Nr microsteps; within a segment the demand is
+    a line, so the mean of the phasor is its value at mid-segment times a sinc.
+    """
+    per_rev = 4.0 * segment.microsteps_per_fullstep * rotor_teeth
+    n = np.linspace(0.0, segment.samples, _MECHANICAL_SAMPLES)
+    theta = 2.0 * math.pi * (segment.position0 + segment.microsteps_per_sample * n) / per_rev
+    return complex(np.mean(np.exp(1j * theta)))
+
+
+def _refuse_unless_characterization(segments: list[Segment], sync_period_s: float,
+                                    conditions: int, why: str) -> None:
+    speeds = {round(abs(s.electrical_hz(sync_period_s)), 1) for s in segments}
+    trims = {s.trims for s in segments}
+    if conditions >= MIN_CONDITIONS and len(speeds) >= 2 and len(trims) >= 2:
+        return
+    found = (f"{conditions} operating condition(s) (speed, direction, current), "
+             f"{len(speeds)} speed(s), {len(trims)} trim set(s)")
+    if why:
+        found += f"; {why}"
+    raise NotDiagnosable(f"this recording is not a characterization ({found}): "
+                         f"{NEEDED_SCHEDULE}")
+
+
+def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
+            settle_fallback: SettleFallback | None = None) -> Observations:
     """Segment the run and demodulate every steady segment to ``orders`` harmonics.
 
-    Segments where an order could not be fitted (too few samples per period
-    for it) are dropped rather than carried with a NaN, so every row is whole.
+    Holds too short to judge their own settling are used when ``settle_fallback``
+    says how long the chain takes to settle (the diagnosis knows that once it has
+    fitted the chain on the longer holds). Segments where an order could not be
+    fitted (too few samples per period for it) are dropped rather than carried
+    with a NaN, so every row is whole; every stretch left out is in ``skipped``.
     """
-    measured, rejected = measure(timeline, AnalysisOptions(orders=orders))
+    measured, rejected = measure(timeline, AnalysisOptions(
+        orders=max(orders, DEMODULATED_ORDERS), settle_fallback=settle_fallback,
+        settle_orders=tuple(range(1, orders + 1))))
     conditions = group_conditions(measured, timeline.sync_period_s)
     keys: list[ConditionKey] = []
-    rows: list[tuple[int, object]] = []
+    rows: list[tuple[int, Measured]] = []
+    period = timeline.sync_period_s
+    skipped = [_skipped(r, period) for r in rejected]
     for condition in conditions:
-        usable = [m for m in condition.measured if np.all(np.isfinite(m.harmonics.phasors))]
+        key = ConditionKey(condition.amplitude_mA, condition.electrical_hz)
+        usable = []
+        for m in condition.measured:
+            where = (m.segment.start * period, m.segment.stop * period)
+            clipped = m.saturated / max(m.segment.samples, 1)
+            if not np.all(np.isfinite(m.harmonics.phasors[:orders])):
+                skipped.append(Skipped(
+                    *where, f"{key.label()}: too few samples per period for order {orders}"))
+            elif clipped > MAX_CLIPPED:
+                skipped.append(Skipped(*where, (
+                    f"{key.label()}: {100 * clipped:.0f} % of the samples clipped at the "
+                    f"sensor's full scale (more than {100 * MAX_CLIPPED:.0f} %): record with "
+                    "a larger range")))
+            else:
+                usable.append(m)
         if not usable:
             continue
-        keys.append(ConditionKey(condition.amplitude_mA, condition.electrical_hz))
+        keys.append(key)
         rows.extend((len(keys) - 1, m) for m in usable)
-    if len(keys) < MIN_CONDITIONS:
-        why = "; ".join(sorted({r.reason for r in rejected})) or "no steady motion"
-        raise NotDiagnosable(
-            f"a diagnosis needs steady segments at {MIN_CONDITIONS} or more operating conditions "
-            f"(speed, direction, current); this recording has {len(keys)} ({why})"
-        )
-    rows.sort(key=lambda row: row[1].segment.start)  # type: ignore[attr-defined]
-    period = timeline.sync_period_s
-    segs = [m.segment for _, m in rows]  # type: ignore[attr-defined]
-    harmonics = [m.harmonics for _, m in rows]  # type: ignore[attr-defined]
+    segs_all = [m.segment for _, m in rows]
+    why = "; ".join(sorted({r.reason for r in rejected}))
+    _refuse_unless_characterization(segs_all, period, len(keys), why)
+    rows.sort(key=lambda row: row[1].segment.start)
+    segs = [m.segment for _, m in rows]
+    harmonics = [m.harmonics for _, m in rows]
+    index = np.array([c for c, _ in rows], dtype=np.intp)
+    phasors = np.array([h.phasors[:orders] for h in harmonics])
+    noise = noise_sigma(harmonics, index, orders)
+    omega = np.array([2 * math.pi * s.electrical_hz(period) for s in segs])
+    teeth = timeline.metadata.rotor_teeth
+    skipped.sort(key=lambda s: s.start_s)
     return Observations(
         metadata=timeline.metadata,
         conditions=tuple(keys),
-        condition=np.array([c for c, _ in rows], dtype=np.intp),
+        condition=index,
         amplitude_A=np.array([s.amplitude_mA * 1e-3 for s in segs]),
-        omega=np.array([2 * math.pi * s.electrical_hz(period) for s in segs]),
+        omega=omega,
         trims=np.array(
             [[s.trims.offset_a_mA, s.trims.offset_b_mA, s.trims.gain_a, s.trims.gain_b]
              for s in segs]
         ),
-        phasors=np.array([h.phasors for h in harmonics]),
-        sigma=np.sqrt(np.array([h.variance for h in harmonics])),
+        phasors=phasors,
+        sigma=np.sqrt(noise**2 + (MODEL_FLOOR * np.abs(phasors)) ** 2),
+        noise=noise,
         time_s=np.array([0.5 * (s.start + s.stop) * period for s in segs]),
+        span=np.array([[s.start, s.stop] for s in segs], dtype=np.int64),
+        mechanical=np.array([mechanical_phasor(s, teeth) for s in segs]),
         segments=tuple(segs),
+        skipped=tuple(skipped),
+        beyond=_beyond(harmonics, orders, omega, period),
     )
+
+
+def _beyond(harmonics: list[Harmonics], orders: int, omega: NDArray[np.float64],
+            period: float) -> NDArray[np.complex128]:
+    """The orders above those modelled, where the sampling resolves them.
+
+    A strong ripple swings the rotor at its own higher orders too, and the torque of
+    the modelled orders is evaluated on that swing: leaving those orders out of the
+    motion mixes an error of a few per cent into the strongest cells.
+    """
+    out = np.array([h.phasors[orders:DEMODULATED_ORDERS] for h in harmonics],
+                   dtype=np.complex128).reshape(len(harmonics), -1)
+    k = np.arange(orders + 1, orders + 1 + out.shape[1])
+    resolved = np.abs(omega)[:, None] * k[None, :] / (2 * math.pi) < BEYOND_NYQUIST / period
+    return np.where(resolved & np.isfinite(out), out, 0.0)
+
+
+def noise_sigma(harmonics: list[Harmonics], condition: NDArray[np.intp], orders: int
+                ) -> NDArray[np.float64]:
+    """Each phasor's standard uncertainty from the sensor's noise, pooled per condition,
+    through the segment's own design.
+
+    The sensor's noise is a property of the sensor, the same in every segment of an
+    operating point; pooling it (a median, so one unsettled segment does not inflate
+    the others) gives an estimate with thousands of degrees of freedom, where a
+    segment's own is noisy and a per-period scatter noisier still: χ² against either
+    would be biased and would hide what the model misses.
+    """
+    noise = np.array([h.noise_variance for h in harmonics])
+    pooled = np.zeros(noise.size)
+    for c in np.unique(condition):
+        rows = condition == c
+        pooled[rows] = float(np.median(noise[rows]))
+    unit = np.array([np.asarray(h.unit_variance)[:orders] for h in harmonics])
+    out: NDArray[np.float64] = np.sqrt(pooled[:, None] * unit)
+    return out
+
+
+def _skipped(rejected: Rejected, period: float) -> Skipped:
+    return Skipped(rejected.start * period, rejected.stop * period, rejected.reason)

@@ -31,10 +31,10 @@ from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 
 from station.diagnosis.diagnose import (
-    MIN_GAIN_CHI2,
-    MIN_GAIN_FRACTION,
-    SEPARABLE_RATIO,
+    MAX_EFFECTS,
+    RIVAL_Z,
     SIGNIFICANT_CONFIDENCE,
+    UNEXPLAINED_RATIO,
     Diagnosis,
     LocatedKind,
     chi2_map,
@@ -234,8 +234,8 @@ def _jitter(condition: NDArray[np.intp]) -> NDArray[np.float64]:
 def _harmonics_figure(d: Diagnosis, labels: Sequence[str]) -> str:
     obs = d.observations
     measured = np.abs(obs.phasors)
-    nominal = np.abs(d.nominal.model.predicted(d.nominal.params))
-    extended = np.abs(d.extended.model.predicted(d.extended.params))
+    nominal = np.abs(d.nominal.fit.model.predicted(d.nominal.fit.params))
+    extended = np.abs(d.extended.fit.model.predicted(d.extended.fit.params))
     x = _jitter(obs.condition)
     orders = obs.orders
     cols = 2 if orders > 1 else 1
@@ -282,7 +282,7 @@ def _chi2_per_dof(result: Fit) -> NDArray[np.float64]:
 def _residual_map_figure(d: Diagnosis, labels: Sequence[str]) -> str:
     obs = d.observations
     conditions = len(obs.conditions)
-    maps = [_chi2_per_dof(d.nominal), _chi2_per_dof(d.extended)]
+    maps = [_chi2_per_dof(d.nominal.fit), _chi2_per_dof(d.extended.fit)]
     values = np.concatenate([m.ravel() for m in maps])
     values = values[np.isfinite(values) & (values > 0)]
     low = float(values.min()) if values.size else 0.1
@@ -317,7 +317,8 @@ def _residual_map_figure(d: Diagnosis, labels: Sequence[str]) -> str:
 
 def _trims_figure(d: Diagnosis, labels: Sequence[str]) -> str:
     values, sigmas = d.constants
-    overall = trim_constants(d.nominal.value("amp_offset_mA"), d.nominal.value("amp_gain_error"))
+    overall = trim_constants(d.nominal.fit.value("amp_offset_mA"),
+                             d.nominal.fit.value("amp_gain_error"))
     titles = ("optimal offset A (mA)", "optimal offset B (mA)", "optimal gain split (1/10000)")
     fig = Figure(figsize=(10.0, 6.2), layout="constrained")
     axes = fig.subplots(3, 1, squeeze=False)[:, 0]
@@ -361,10 +362,24 @@ def _verdict(d: Diagnosis, doc: Mapping[str, Any]) -> str:
     else:
         verdict = ("<span class='match'>No mismatch</span>: the paper's model explains this "
                    "recording within its noise.")
-    model = ", ".join(doc["model"]) or "nominal only"
+    model = ", ".join(e["id"] for e in doc["effects"]) or "nominal only"
+    left = d.unexplained
+    if left.significant:
+        residual = (
+            "<p class='mismatch'>A significant residual is left: with the best model the "
+            f"vocabulary allows, the held-out χ² is {_e(_chi2(left.chi2))} for "
+            f"{_e(left.values)} values ({_e(_num(left.ratio, 3))} per value, noise is 1). "
+            "No id describes what remains; where it is, is listed below as "
+            "<i>unexplained</i>.</p>")
+    else:
+        residual = (
+            f"<p>What the {'extended' if d.effects else 'nominal'} model leaves on held-out "
+            f"conditions is noise: χ² {_e(_chi2(left.chi2))} for {_e(left.values)} values "
+            f"({_e(_num(left.ratio, 3))} per value).</p>")
     lines = [
         f"<p class='verdict'>{verdict}</p>",
-        "<p>Held-out residual (RMS, m/s²): "
+        residual,
+        "<p>Held-out residual (inverse-variance weighted RMS, m/s²): "
         f"<b>{_e(_rms(fit['before']))}</b> with the nominal model → "
         f"<b>{_e(_rms(fit['after']))}</b> with the extended model "
         f"({_e(model)}). Held-out χ²: {_e(_chi2(fit['before_chi2']))} → "
@@ -372,10 +387,28 @@ def _verdict(d: Diagnosis, doc: Mapping[str, Any]) -> str:
         f"({_e(d.observations.count)} segments × {_e(d.observations.orders)} orders × "
         "2 parts, each condition held out in turn).</p>",
     ]
+    if d.findings:
+        items = "".join(f"<li>{_e(f.text)}</li>" for f in d.findings)
+        lines.append("<p class='mismatch'>The nominal model cannot describe this recording:"
+                     f"</p><ul>{items}</ul>")
     if d.warnings:
         items = "".join(f"<li>{_e(w)}</li>" for w in d.warnings)
         lines.append(f"<ul class='note'>{items}</ul>")
     return "".join(lines)
+
+
+def _evidence_table(evidence: Sequence[Mapping[str, Any]]) -> str:
+    """The located cells an effect explains: χ² of the held-out residual without it and
+    with it, at each (condition, order)."""
+    if not evidence:
+        return "no single cell is significant on its own; the gain is spread thinly"
+    rows = "".join(
+        f"<tr><td>{_e(_condition_of(cell))}, order {_e(cell['order'])}</td>"
+        f"<td class='num'>{_e(_chi2(cell['chi2_before']))} → "
+        f"{_e(_chi2(cell['chi2_after']))}</td></tr>"
+        for cell in evidence
+    )
+    return f"<table class='inner'>{rows}</table>"
 
 
 def _effects_section(d: Diagnosis) -> str:
@@ -390,44 +423,63 @@ def _effects_section(d: Diagnosis) -> str:
         rows.append(_cells(
             f"<b>{_e(doc['id'])}</b>",
             _e(_chi2(doc["held_out_chi2_gain"])),
+            _evidence_table(doc["evidence"]),
             _e(rivals),
             _e(experiment),
             _parameter_table(doc["parameters"]),
             numeric=(1,),
         ))
-    return _table(("effect", "held-out χ² gain", "cannot separate from",
-                   "experiment that would separate them", "fitted parameters (± 1σ)"), rows)
+    return _table(("effect", "held-out χ² gain",
+                   "evidence: located cells it explains (held-out χ² without → with it)",
+                   "cannot separate from", "experiment that would separate them",
+                   "fitted parameters (± 1σ)"), rows)
 
 
 def _nominal_section(doc: Mapping[str, Any]) -> str:
     return (
         "<p>What the nominal model found on all conditions (trims in the drive's units; the "
-        "load angle of each condition and the friction it implies):</p>"
+        "chain's modes; the load angle of each condition and the friction it implies). "
+        "A parameter whose state is not <i>fitted</i> is not a result:</p>"
         + _parameter_table(doc["nominal"])
     )
 
 
+def _skipped_section(d: Diagnosis) -> str:
+    obs = d.observations
+    settled = obs.model_settled
+    head = (f"<p>{_e(obs.count)} segments used, {_e(settled)} of them from holds too short "
+            "to judge their own settling (their start is the fitted chain's decay time and "
+            "their σ is what the harmonics' own scatter says).</p>")
+    if not obs.skipped:
+        return head + "<p>No stretch of steady motion was skipped.</p>"
+    rows = [_cells(_e(_num(s.start_s, 4)), _e(_num(s.stop_s, 4)), _e(s.reason),
+                   numeric=(0, 1)) for s in obs.skipped]
+    return head + _table(("from (s)", "to (s)", "why it was skipped"), rows)
+
+
 def _located_section(d: Diagnosis) -> str:
     conditions = d.observations.conditions
-    harmonic = [loc.as_dict(conditions) for loc in d.located
-                if loc.kind is LocatedKind.HARMONIC]
+    kinds = {LocatedKind.HARMONIC: "nominal residual",
+             LocatedKind.UNEXPLAINED: "unexplained"}
+    harmonic = [loc.as_dict(conditions) for loc in d.located if loc.kind in kinds]
     drift = [loc.as_dict(conditions) for loc in d.located
              if loc.kind is LocatedKind.PARAMETER_DRIFT]
-    harmonic.sort(key=lambda item: float(item["chi2"]), reverse=True)
+    harmonic.sort(key=lambda item: (item["kind"] != LocatedKind.UNEXPLAINED.value,
+                                    -float(item["chi2"])))
     shown = harmonic[:MAX_HARMONIC_ROWS]
     rows = []
     for item in shown:
         where = f"{_condition_of(item)}, order {item['order']}"
         detail = (f"residual {_num(item['residual_rms_mps2'], 3)} of measured "
                   f"{_num(item['measured_rms_mps2'], 3)} m/s² RMS")
-        rows.append(_located_row("harmonic", where, item, detail))
+        rows.append(_located_row(kinds[LocatedKind(item["kind"])], where, item, detail))
     for item in drift:
         rows.append(_located_row("parameter drift", str(item["parameter"]), item,
                                  f"trend {item['trend']}"))
     note = (f"<p class='note'>{len(harmonic)} harmonic entries located, the "
-            f"{len(shown)} strongest (by χ²) shown; {len(drift)} drift entries, all shown. "
-            f"Located: noise alone would give a χ² this large with probability below "
-            f"{_constant(1.0 - SIGNIFICANT_CONFIDENCE)}.</p>")
+            f"{len(shown)} strongest (by χ², unexplained first) shown; {len(drift)} drift "
+            "entries, all shown. Located: noise alone would give a χ² this large with "
+            f"probability below {_constant(1.0 - SIGNIFICANT_CONFIDENCE)}.</p>")
     if not rows:
         return "<p>Nothing located: the nominal model's residual is noise everywhere.</p>" + note
     table = _table(("kind", "where", "χ² / dof", "ratio", "confidence", "detail"), rows)
@@ -448,28 +500,23 @@ def _rounds_section(d: Diagnosis) -> str:
     if not d.rounds:
         return "<p>No naming round was run.</p>"
     rows = []
-    for number, rnd in enumerate(d.rounds, start=1):
-        base = rnd.base_held_chi2
-        needed = max(MIN_GAIN_CHI2, MIN_GAIN_FRACTION * base)
-        chosen = rnd.chosen.value if rnd.chosen is not None else "none"
-        rows.append(
-            f"<tr class='round'><td colspan='5'>Round {number}: base held-out χ² "
-            f"{_e(_chi2(base))}; a candidate must cut it by more than {_e(_chi2(needed))} "
-            f"and lower the BIC; chosen: {_e(chosen)}</td></tr>"
-        )
-        if not rnd.trials:
-            rows.append("<tr><td colspan='5'>no candidate left to try (the others are "
-                        "named or cannot be separated from a named one)</td></tr>")
-        for trial in sorted(rnd.trials, key=lambda t: t.held.total):
-            picked = rnd.chosen is not None and trial.effect is rnd.chosen
-            gain = base - trial.held.total
+    for rnd in d.rounds:
+        chosen = rnd.chosen.label if rnd.chosen is not None else "none"
+        rows.append(f"<tr class='round'><td colspan='7'>Models of {_e(rnd.size)} "
+                    f"effect(s): chosen {_e(chosen)}</td></tr>")
+        for test in sorted(rnd.tried, key=lambda t: t.larger.held.total):
+            picked = rnd.chosen is not None and test.larger is rnd.chosen
             row = _cells(
-                _e(trial.effect.value), _e(_chi2(trial.held.total)), _e(_chi2(gain)),
-                "yes" if gain > needed else "no", _e(_chi2(trial.fit.bic)),
-                numeric=(1, 2, 4),
+                _e(test.larger.label), _e(test.smaller.label),
+                _e(_chi2(test.chi2_gain)),
+                _e(_chi2(max(test.f_threshold, test.bic_threshold))),
+                _e(_chi2(test.held_gain)), _e(_chi2(test.added * test.noise)),
+                "yes" if test.significant else "no",
+                numeric=(2, 3, 4, 5),
             )
             rows.append(row.replace("<tr>", "<tr class='chosen'>", 1) if picked else row)
-    return _table(("candidate", "held-out χ²", "gain", "gain enough", "BIC"), rows)
+    return _table(("model", "against", "χ² gain", "needed (F, BIC)", "held-out gain",
+                   "needed (noise × added)", "significant"), rows)
 
 
 def _held_out_table(d: Diagnosis, labels: Sequence[str]) -> str:
@@ -493,43 +540,37 @@ def _held_out_table(d: Diagnosis, labels: Sequence[str]) -> str:
 def _method() -> str:
     thresholds = (
         ("SIGNIFICANT_CONFIDENCE", SIGNIFICANT_CONFIDENCE,
-         "a residual or drift is located when noise alone would reach its χ² with "
-         "probability below 1 minus this"),
-        ("MIN_GAIN_CHI2", MIN_GAIN_CHI2,
-         "least cut of the held-out χ² for an effect to be named"),
-        ("MIN_GAIN_FRACTION", MIN_GAIN_FRACTION,
-         "...and least cut as a fraction of the held-out χ² left before it"),
-        ("SEPARABLE_RATIO", SEPARABLE_RATIO,
-         "a rival leaving less than this times the winner's held-out χ² (plus MIN_GAIN_CHI2) "
-         "cannot be told apart from it"),
+         "a residual or drift is located, and a group's F test passes, when noise alone "
+         "would reach its χ² with probability below 1 minus this"),
+        ("MAX_EFFECTS", MAX_EFFECTS, "most effects combined in one model"),
+        ("RIVAL_Z", RIVAL_Z,
+         "a rival whose held-out χ² exceeds the winner's by less than this many standard "
+         "errors (paired over the residuals) cannot be told apart from it"),
+        ("UNEXPLAINED_RATIO", UNEXPLAINED_RATIO,
+         "held-out χ² per value beyond this (plus four standard deviations of noise) is a "
+         "significant residual left"),
     )
     rows = [_cells(f"<code>{_e(name)}</code>", _e(_constant(value)), _e(meaning), numeric=(1,))
             for name, value, meaning in thresholds]
     return (
         "<p>The <b>nominal model</b> is the paper's torque model (two phases with sinusoidal "
         "mutual inductance, the amplifier's offsets and gain errors on the commanded "
-        "currents) driving the fixture's mechanical chain (a rigid disk on the shaft, or a "
-        "belt to a load), seen through the sensor's timing (a delay and an angle offset), "
-        "with one load angle per condition. It is fitted as an <b>equation error</b> on the "
-        "measured motion: carried back through the chain, the measured motion must need the "
-        "torque that the model's currents make on that same motion, at every harmonic order. "
-        "The mismatch is expressed in m/s² of sensor acceleration and weighted by each "
-        "harmonic's measured uncertainty, so χ² counts the misfit in units of the noise "
-        "(χ² per degree of freedom near 1 is noise).</p>"
-        "<p>Every model is judged on conditions <b>held out</b> of its fit: each operating "
-        "condition in turn is predicted by the model fitted to the others (leave one "
-        "condition out, by a one-step approximation of the refit), so a term group that "
-        "only follows the noise of the fitted data cannot win. Candidate effects are added "
-        "one at a time; the best is kept only if it cuts the held-out χ² by more than "
-        f"{_e(_constant(MIN_GAIN_CHI2))} and by more than {_e(f'{MIN_GAIN_FRACTION:.0%}')} of "
-        "what was left, and also lowers <b>Schwarz's criterion</b> (BIC: χ² plus ln n per "
-        "parameter, n the number of fitted values), then the search repeats. A rival whose "
-        f"held-out χ² stays within {_e(_constant(SEPARABLE_RATIO))} times the winner's (plus "
-        f"{_e(_constant(MIN_GAIN_CHI2))}) cannot be told apart from it on these data; the "
-        "experiment that would is named. A residual, or a drift of the amplifier's constants "
-        f"between conditions, is <b>located</b> when its χ² exceeds the "
-        f"{_e(_constant(SIGNIFICANT_CONFIDENCE))} quantile of the χ² distribution of noise "
-        "alone.</p>"
+        "currents) driving the chain the fixture declares (a rigid disk on the shaft, or a "
+        "belt to a load with the metadata's gear ratio and unknown stiffness, damping and "
+        "inertia ratio), seen through the sensor's own low-pass, with one load angle per "
+        "condition. It is fitted as an <b>equation error</b> on the measured motion at every "
+        "harmonic order, plus the mean torque balance of every segment, weighted by each "
+        "harmonic's measured noise, so χ² counts the misfit in units of the noise.</p>"
+        "<p>Every model is also judged on conditions <b>held out</b> of its fit (each "
+        "condition in turn predicted by the model fitted to the others, by a one-step "
+        "approximation of the refit). An effect's term group is added when it lowers χ² by "
+        "more than noise explains for the parameters it adds (an F test against the larger "
+        "model's own χ² per degree of freedom, and Schwarz's criterion) and lowers the "
+        "held-out χ² by more than the noise per added parameter. Models of up to "
+        f"{_e(MAX_EFFECTS)} effects are searched with a beam, then any group the others make "
+        "unnecessary is dropped. When the best model still leaves a significant held-out "
+        "residual, an id is kept only if it explains more of the mismatch than is left: "
+        "physics no id describes is reported as unexplained, never as the nearest id.</p>"
         + _table(("threshold", "value", "meaning"), rows)
     )
 
@@ -567,6 +608,8 @@ def render_html(diagnosis: Diagnosis, *, source: str) -> str:
                 "or speed beyond their σ are something the nominal model lacks."),
         "<h2>Located disagreements</h2>",
         _located_section(diagnosis),
+        "<h2>Holds used and skipped</h2>",
+        _skipped_section(diagnosis),
         "<h2>Naming rounds</h2>",
         _rounds_section(diagnosis),
         "<h2>Held-out χ² per condition</h2>",

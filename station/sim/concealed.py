@@ -1,115 +1,341 @@
-"""Concealed-effect trials: record a simulated unit with one effect on, diagnose blind, score.
+"""Concealed-effect trials: draw a unit and a schedule, record, diagnose blind, score.
 
 The acceptance test and the diagnosis benchmark both run these, so they must
-record, diagnose and score alike; the rule is the issue's. A correct name
-counts 1, an honest "cannot separate X from Y" that contains the truth ½,
-anything else 0; on a negative control (no effect) any name is a miss. The
-truth file goes to its own folder, and the diagnosis reads the recording only.
+draw, record, diagnose and score alike. A trial is a class (the effects it
+conceals: none, one vocabulary id, two, or physics no id describes) and a
+seed; from the seed come a unit over the population's wide ranges
+(``station.sim.population``), disk or belt, and a characterization schedule
+drawn as someone else might write one (``random_characterization``: any
+speeds 5-40 Hz both ways, any currents, holds of 0.4-1 s whatever their
+number of periods, steps of either sign, trimmed or untrimmed). The
+recording is made in process (the plant and the ICD frames, exactly what the
+bus would carry), the truth goes to its own folder, and the diagnosis reads
+the recording only.
+
+Seeds below ``TRIAL_SEED_FLOOR`` are for development; the test and the
+benchmark draw theirs at random above it, so what they report comes from
+trials nobody tuned on.
+
+Scoring follows the issue: the exact set of effects counts 1; an honest
+ambiguity ("cannot separate X from Y", the truth among them) or an honest
+"unknown" (a mismatch with no id) counts ½; anything else 0. Physics outside
+the vocabulary scores 1 for a mismatch with no id, ½ for silence, 0 for any
+id; a control scores 1 when nothing is named.
 """
 
 from __future__ import annotations
 
 import os
+import secrets
 import time
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Final
 
-from station.characterize import diagnose_recording
-from station.core import Effect
+import numpy as np
+
+from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind, Trims
 from station.paths import HOME_ENV
-from station.schedules import ScheduleName
-from station.serials import parse_serial
-from station.sim.record import SYNC_PERIOD_S, SimRecordRequest, record_simulation
+from station.physics.params import UnitParams, UnnamedEffect
+from station.recording import write_json_atomically
+from station.schedules import Schedule, random_characterization
+from station.sim.inprocess import record_in_process, simulate_timeline
+from station.sim.population import draw_unit
+
+TRIAL_SEED_FLOOR: Final = 1_000_000
+"""Seeds below this are for development; reported trials draw theirs above it."""
+
+MAX_SCHEDULE_S: Final = 100.0
+"""A drawn characterization longer than this is drawn again (a line would not wait)."""
+
+PLANT_SUBSTEPS: Final = 32
+"""Integration steps per SYNC for trial recordings: at the bench's 8 the plant's phase
+near a damped resonance is off by a few percent, more than any real chain's model."""
+
+FRICTION_HEADROOM: Final = 0.5
+"""Friction is kept below this share of the holding torque at the schedule's lowest
+current: beyond it the motor would stall, which is a failed run, not a diagnosis."""
+
+RANGE_MARGIN: Final = 0.8
+"""The sensor range is the smallest whose full scale the run's peaks stay under by this
+factor: the range a careful engineer would set after a first look."""
 
 NO_EFFECT: Final = "none"
-CLASSES: Final = (
-    NO_EFFECT,
-    Effect.FLUX_HARMONICS.value,
-    Effect.DETENT_TORQUE.value,
-    Effect.LOAD_RESONANCE.value,
-    Effect.CURRENT_DISTORTION.value,
+UNNAMED_PREFIX: Final = "unnamed:"
+
+
+@dataclass(frozen=True)
+class TrialClass:
+    """What a trial conceals: vocabulary ids, and physics no id describes."""
+
+    effects: frozenset[Effect] = frozenset()
+    unnamed: frozenset[UnnamedEffect] = frozenset()
+
+    @property
+    def label(self) -> str:
+        parts = sorted(e.value for e in self.effects) + sorted(
+            UNNAMED_PREFIX + u.value for u in self.unnamed)
+        return "+".join(parts) or NO_EFFECT
+
+    @property
+    def control(self) -> bool:
+        return not self.effects and not self.unnamed
+
+    @property
+    def out_of_vocabulary(self) -> bool:
+        return bool(self.unnamed) and not self.effects
+
+
+def _pair(a: Effect, b: Effect) -> TrialClass:
+    return TrialClass(frozenset({a, b}))
+
+
+PAIRS: Final = (
+    # The issue's own confusions: cogging with a compliant coupling, cogging with flux.
+    _pair(Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE),
+    _pair(Effect.FLUX_HARMONICS, Effect.DETENT_TORQUE),
+    _pair(Effect.CURRENT_DISTORTION, Effect.CURRENT_LOOP_LAG),
+    _pair(Effect.MAGNETIC_SATURATION, Effect.RELUCTANCE_TORQUE),
+    _pair(Effect.FRICTION, Effect.SENSOR_CLOCK_DRIFT),
+    _pair(Effect.ROTOR_ECCENTRICITY, Effect.FLUX_HARMONICS),
 )
-"""The issue's list: each effect alone, and none."""
+
+CLASSES: Final = (
+    TrialClass(),
+    *(TrialClass(frozenset({e})) for e in Effect),
+    *PAIRS,
+    *(TrialClass(unnamed=frozenset({u})) for u in UnnamedEffect),
+)
+"""Every vocabulary id alone, two-effect combinations, two effects no id describes
+(``UnnamedEffect``: a sensor whose element is not linear, a sensor mounted turned), and
+the negative controls."""
 
 
 @dataclass(frozen=True)
 class Case:
-    serial: str
-    truth: str  # an Effect value, or NO_EFFECT
+    cls: TrialClass
     seed: int
 
     @property
     def label(self) -> str:
-        return f"{self.serial}-{self.truth}"
+        return f"{self.cls.label}@{self.seed}"
 
 
+def fresh_seeds(count: int) -> list[int]:
+    """Seeds nobody developed on: at random above ``TRIAL_SEED_FLOOR``, new every run."""
+    return [TRIAL_SEED_FLOOR + secrets.randbelow(2**31 - TRIAL_SEED_FLOOR) for _ in range(count)]
+
+
+def cases(classes: Iterable[TrialClass], per_class: int, seeds: Iterable[int]) -> list[Case]:
+    pool = iter(seeds)
+    return [Case(cls, next(pool)) for cls in classes for _ in range(per_class)]
+
+
+# --------------------------------------------------------------------------- drawing
+@dataclass(frozen=True)
+class TrialPlan:
+    """What the simulator is asked to record for one case (the truth, with the schedule)."""
+
+    case: Case
+    unit: UnitParams
+    schedule: Schedule
+    loss: float
+    center: Trims
+
+
+def _center(rng: np.random.Generator, unit: UnitParams) -> Trims:
+    """As found (factory trims) half the time, else near the unit's optimum: a station
+    characterizes a unit around the trims it has, which may be calibrated or not."""
+    if rng.random() < 0.5:
+        return Trims()
+    amp = unit.amplifier
+    split = (amp.gain_error_a - amp.gain_error_b) / 2.0
+    return Trims(
+        float(round(-amp.offset_a_mA + rng.normal(0.0, 8.0))),
+        float(round(-amp.offset_b_mA + rng.normal(0.0, 8.0))),
+        float(round(GAIN_UNITY * (1.0 - split) + rng.normal(0.0, 30.0))),
+        float(round(GAIN_UNITY * (1.0 + split) + rng.normal(0.0, 30.0))),
+    )
+
+
+def _schedule(rng: np.random.Generator, center: Trims) -> Schedule:
+    for _ in range(50):
+        schedule = random_characterization(rng, center=center)
+        if schedule.cycles * 1e-3 <= MAX_SCHEDULE_S:
+            return schedule
+    raise RuntimeError("no characterization short enough was drawn in 50 tries")
+
+
+def _friction_within_reach(unit: UnitParams, schedule: Schedule) -> UnitParams:
+    """Scale the load's friction down where the schedule's lowest current could not move it."""
+    friction = unit.mechanics.load_friction
+    if friction is None:
+        return unit
+    lowest = min(h.amplitude_mA for h in schedule.holds if h.velocity) / unit.rated_current_mA
+    holding_load = unit.motor.holding_torque_Nm(lowest) / unit.gear_ratio
+    worst = max(friction.coulomb_pos_Nm, friction.coulomb_neg_Nm)
+    limit = FRICTION_HEADROOM * holding_load
+    if worst <= limit:
+        return unit
+    scale = limit / worst
+    scaled = replace(friction, coulomb_pos_Nm=friction.coulomb_pos_Nm * scale,
+                     coulomb_neg_Nm=friction.coulomb_neg_Nm * scale)
+    return replace(unit, mechanics=replace(unit.mechanics, load_friction=scaled))
+
+
+def _range_for(unit: UnitParams, schedule: Schedule, seed: int) -> int:
+    """The smallest sensor range every hold's steady peaks fit in, from a first run at 16 g.
+
+    Peaks are taken over the second half of each hold (the transients of a speed change
+    may clip; a steady condition must not), so a fast condition that is a small part of
+    the run still sets the range.
+    """
+    widest = max(SENSOR_RANGES_G)
+    timeline = simulate_timeline(unit, replace(schedule, sensor_range_g=widest), seed=seed)
+    meta = timeline.metadata
+    counts = np.abs(timeline.accel_counts[:, meta.tangential_axis.column].astype(np.float64))
+    valid = timeline.sensor_valid & (timeline.amplitude_mA > 0)
+    peak = 0.0
+    start = 0
+    for hold in schedule.holds:
+        stop = min(start + hold.cycles, counts.size)
+        half = slice(start + (stop - start) // 2, stop)
+        steady = counts[half][valid[half]]
+        if hold.velocity and steady.size:
+            peak = max(peak, float(np.quantile(steady, 0.999)) * meta.sensor_lsb_mps2)
+        start = stop
+    for range_g in SENSOR_RANGES_G:
+        if peak < RANGE_MARGIN * range_g * STANDARD_GRAVITY:
+            return range_g
+    return widest
+
+
+def plan_trial(case: Case) -> TrialPlan:
+    """Everything a case's recording needs, drawn from its seed alone."""
+    rng = np.random.default_rng([case.seed, 0x7E1A])
+    load = LoadKind.DISK if rng.random() < 0.5 else LoadKind.BELT
+    unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed)
+    center = _center(rng, unit)
+    schedule = _schedule(rng, center)
+    unit = _friction_within_reach(unit, schedule)
+    schedule = replace(schedule, name="characterization",
+                       sensor_range_g=_range_for(unit, schedule, case.seed))
+    loss = float(rng.uniform(0.0, 0.01))
+    return TrialPlan(case, unit, schedule, loss, center)
+
+
+def record_trial(plan: TrialPlan, out: Path, truth: Path) -> Path:
+    """The plan's recording at ``out`` and its truth in ``truth`` (another folder)."""
+    if truth.resolve().parent == out.resolve().parent:
+        raise ValueError("the truth must not sit beside the recording")
+    record_in_process(out, plan.unit, plan.schedule, seed=plan.case.seed, loss=plan.loss,
+                      substeps=PLANT_SUBSTEPS, extra_metadata={"schedule": "characterization"})
+    write_json_atomically(truth, {
+        "class": plan.case.cls.label,
+        "seed": plan.case.seed,
+        "effects": sorted(e.value for e in plan.case.cls.effects),
+        "out_of_vocabulary": sorted(u.value for u in plan.case.cls.unnamed),
+        "loss": plan.loss,
+        "center_trims": plan.center.as_dict(),
+        "schedule_s": plan.schedule.cycles * 1e-3,
+        "sensor_range_g": plan.schedule.sensor_range_g,
+        "unit": plan.unit.to_dict(),
+    })
+    return out
+
+
+# --------------------------------------------------------------------------- running
 @dataclass(frozen=True)
 class Trial:
     case: Case
     doc: dict[str, Any]  # what ``station diagnose --json`` prints
     diagnose_s: float  # reading the recording included
     recording_s: float  # simulated time the recording covers
+    load: str
 
     @property
     def score(self) -> float:
-        return score(self.case.truth, self.doc)
+        return score(self.case.cls, self.doc)
 
 
 def run_trial(case: Case, root: Path) -> Trial:
-    """Record ``case`` under ``root`` (recordings, truth and simulated EEPROMs apart) and
-    diagnose it. Sets STATION_HOME: run it in a worker process of its own."""
-    os.environ[HOME_ENV] = str(root / "home" / case.label)
-    out = root / "recordings" / f"{case.label}.blf"
-    for folder in (out.parent, root / "truth"):
+    """Record ``case`` under ``root`` (recordings and truth apart) and diagnose it blind.
+    Sets STATION_HOME: run it in a worker process of its own."""
+    # Imported here: the simulator side of this module must not need the diagnosis.
+    from station.characterize import diagnose_recording  # noqa: PLC0415
+
+    name = case.label.replace(":", "_").replace("@", "-")
+    os.environ[HOME_ENV] = str(root / "home" / name)
+    out = root / "recordings" / f"{name}.blf"
+    truth = root / "truth" / f"{name}.truth.json"
+    for folder in (out.parent, truth.parent):
         folder.mkdir(parents=True, exist_ok=True)
-    recorded = record_simulation(SimRecordRequest(
-        out=out,
-        serial=parse_serial(case.serial),
-        schedule=ScheduleName.CHARACTERIZATION,
-        effects=frozenset() if case.truth == NO_EFFECT else frozenset({Effect(case.truth)}),
-        seed=case.seed,
-        truth=root / "truth" / f"{case.label}.truth.json",
-    ))
+    plan = plan_trial(case)
+    record_trial(plan, out, truth)
     started = time.perf_counter()
     doc = diagnose_recording(out, write_report=False).as_dict()
-    return Trial(case, doc, time.perf_counter() - started, recorded.cycles * SYNC_PERIOD_S)
+    return Trial(case, doc, time.perf_counter() - started, plan.schedule.cycles * 1e-3,
+                 plan.unit.load.value)
 
 
+# --------------------------------------------------------------------------- scoring
 def named(doc: dict[str, Any]) -> list[tuple[str, list[str]]]:
     """Each named effect with the rivals it cannot be separated from."""
     return [(e["id"], e.get("cannot_separate_from", [])) for e in doc["effects"]]
 
 
-def score(truth: str, doc: dict[str, Any]) -> float:
+def score(cls: TrialClass, doc: dict[str, Any]) -> float:
     found = named(doc)
-    if truth == NO_EFFECT:
+    if cls.control:
         return 1.0 if not found else 0.0
-    if len(found) != 1:
-        return 0.0
-    effect, rivals = found[0]
-    if effect == truth and not rivals:
+    if cls.out_of_vocabulary:
+        if found:
+            return 0.0
+        return 1.0 if doc["mismatch"] else 0.5
+    truth = {e.value for e in cls.effects}
+    ids = {effect for effect, _ in found}
+    if not found:
+        return 0.5 if doc["mismatch"] and doc["unexplained"]["significant"] else 0.0
+    if ids == truth and not any(rivals for _, rivals in found):
         return 1.0
-    return 0.5 if truth in (effect, *rivals) else 0.0
+    covered = all(any(t == e or t in r for e, r in found) for t in truth)
+    return 0.5 if covered and len(found) == len(truth) else 0.0
 
 
 def outcome(doc: dict[str, Any]) -> str:
-    """The diagnosis as one confusion-matrix column: ``a|b`` for inseparable rivals."""
-    return "+".join("|".join([e, *r]) for e, r in named(doc)) or NO_EFFECT
+    """The diagnosis as one confusion-matrix column: ``a|b`` for inseparable rivals,
+    ``?`` for an unexplained residual."""
+    text = "+".join("|".join([e, *r]) for e, r in named(doc)) or NO_EFFECT
+    if doc["unexplained"]["significant"]:
+        text += "+?"
+    return text
 
 
 def confusion(trials: list[Trial]) -> str:
-    """Rows: truth; columns: what was named; then the score."""
-    columns = sorted({outcome(t.doc) for t in trials} | {NO_EFFECT})
-    # Columns as wide as their names: "a|b" and "a+b" must not be cut down to "a".
-    width = max(len(c) for c in columns) + 2
-    lines = ["confusion matrix (rows: truth, columns: diagnosis)",
-             f"{'truth':<20}" + "".join(f"{c:>{width}}" for c in columns)]
-    for truth in CLASSES:
-        counts = dict.fromkeys(columns, 0)
-        for t in trials:
-            if t.case.truth == truth:
-                counts[outcome(t.doc)] += 1
-        lines.append(f"{truth:<20}" + "".join(f"{counts[c]:>{width}}" for c in columns))
-    lines.append(f"score {sum(t.score for t in trials):.1f} / {len(trials)}")
+    """Rows: truth class; then what was named, with counts; then the score."""
+    lines = ["diagnoses per class (truth: what was named ×count)"]
+    by_class: dict[str, list[Trial]] = {}
+    for t in trials:
+        by_class.setdefault(t.case.cls.label, []).append(t)
+    width = max((len(k) for k in by_class), default=10) + 2
+    for label, members in by_class.items():
+        counts: dict[str, int] = {}
+        for t in members:
+            counts[outcome(t.doc)] = counts.get(outcome(t.doc), 0) + 1
+        described = ", ".join(f"{k} ×{v}" for k, v in sorted(counts.items(),
+                                                          key=lambda kv: -kv[1]))
+        mean = sum(t.score for t in members) / len(members)
+        lines.append(f"{label:<{width}} {mean:5.2f}  {described}")
+    total = sum(t.score for t in trials)
+    lines.append(f"score {total:.1f} / {len(trials)}")
     return "\n".join(lines)
+
+
+def describe(trial: Trial) -> str:
+    """One line per trial, for logs: class, seed, load, result, time."""
+    fit = trial.doc["fit"]
+    return (f"{trial.case.label:<48} {trial.load:<4} score {trial.score:.1f} "
+            f"named {outcome(trial.doc):<40} χ² {fit['before_chi2']:.0f}→{fit['after_chi2']:.0f} "
+            f"{trial.diagnose_s:5.1f} s")
+

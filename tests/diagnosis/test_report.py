@@ -1,106 +1,43 @@
-"""The diagnosis report page (station.diagnosis.report), on a diagnosis of synthetic harmonics.
+"""The diagnosis report page (station.diagnosis.report) a motion engineer reads.
 
-The harmonics are made by the diagnosis's own model run forward: a nominal
-motor with amplifier offsets and gain errors plus a known cogging torque,
-the motion solved by Newton steps on the model's equation error (each
-``Model.predicted`` is one such step), then noise added. That is enough
-physics for the diagnosis to name the cogging, which is what the page must
-then show; the page's own correctness is judged on its content, not on the
-physics.
+One recording of the simulated bench (a disk unit with cogging, a drawn
+characterization schedule, made in process) is diagnosed once per module;
+the page must then show what the diagnosis concluded and the evidence behind
+it. What the page says when a significant residual is left is checked on the
+same diagnosis with its verdict on the residual swapped: the page's wording
+is under test there, not the physics (the acceptance test judges that).
 """
 
 from __future__ import annotations
 
-import math
+import html
 import re
 from dataclasses import replace
 from pathlib import Path
 
 import matplotlib.pyplot as plt
-import numpy as np
 import pytest
 
-from station.analysis.segments import Segment
-from station.core import Effect, Trims
-from station.diagnosis.diagnose import Diagnosis, LocatedKind, diagnose_observations
-from station.diagnosis.model import ChainKind, Model, ModelSpec
-from station.diagnosis.observations import DIAGNOSIS_ORDERS, ConditionKey, Observations
-from station.diagnosis.report import MAX_HARMONIC_ROWS, write_report
-from tests.metadata import icd_metadata
+from station.analysis.reader import read_recording
+from station.core import Effect
+from station.diagnosis.diagnose import Diagnosis, LocatedKind, Unexplained, diagnose
+from station.diagnosis.report import MAX_HARMONIC_ROWS, render_html, write_report
+from station.sim.concealed import Case, TrialClass, plan_trial, record_trial
 
-META = icd_metadata(serial="SN1", sensor_lsb_mps2=0.0024, sensor_radius_m=0.04)
-CONDITIONS = (
-    ConditionKey(600, 20.0),
-    ConditionKey(600, -20.0),
-    ConditionKey(1000, 20.0),
-    ConditionKey(1000, -20.0),
-    ConditionKey(1000, 35.0),
-    ConditionKey(600, -35.0),
-)
-# Trim steps of a characterization: as found, offset A, offset B, gain split.
-TRIM_STEPS = (
-    (0.0, 0.0, 10000.0, 10000.0),
-    (40.0, 0.0, 10000.0, 10000.0),
-    (0.0, 40.0, 10000.0, 10000.0),
-    (0.0, 0.0, 10400.0, 9600.0),
-)
-NOISE_MPS2 = 0.01
-SOURCE = "recordings/SN1-characterize.mf4"
-
-
-def _segment(index: int, key: ConditionKey, trims: tuple[float, ...]) -> Segment:
-    per_sample = key.electrical_hz * 4 * META.microsteps_per_fullstep * META.sync_period_s
-    start = 1000 * index
-    return Segment(
-        start=start, stop=start + 900, held_from=start, steady_from=start,
-        trims=Trims(*trims), amplitude_mA=key.amplitude_mA, position0=0.0,
-        microsteps_per_sample=per_sample, periods=int(abs(key.electrical_hz) * 0.9),
-        microsteps_per_fullstep=META.microsteps_per_fullstep,
-    )
-
-
-def _observations(seed: int = 1) -> Observations:
-    rows = [(c, t) for c in range(len(CONDITIONS)) for t in TRIM_STEPS]
-    count = len(rows)
-    obs = Observations(
-        metadata=META,
-        conditions=CONDITIONS,
-        condition=np.array([c for c, _ in rows], dtype=np.intp),
-        amplitude_A=np.array([CONDITIONS[c].amplitude_mA * 1e-3 for c, _ in rows]),
-        omega=np.array([2 * math.pi * CONDITIONS[c].electrical_hz for c, _ in rows]),
-        trims=np.array([t for _, t in rows]),
-        phasors=np.zeros((count, DIAGNOSIS_ORDERS), dtype=np.complex128),
-        sigma=np.full((count, DIAGNOSIS_ORDERS), NOISE_MPS2),
-        time_s=np.arange(count, dtype=np.float64),
-        segments=tuple(_segment(i, CONDITIONS[c], t) for i, (c, t) in enumerate(rows)),
-    )
-    spec = ModelSpec(ChainKind.RIGID, frozenset({Effect.DETENT_TORQUE}))
-    truth = Model(spec, obs)
-    p = truth.layout.start()
-    sl = truth.layout.slices
-    p[sl["delay_ms"]] = 0.4
-    p[sl["load_angle_rad"]] = [0.1 * key.direction for key in CONDITIONS]
-    p[sl["amp_offset_mA"]] = (-30.0, 20.0)
-    p[sl["amp_gain_error"]] = (0.02, -0.01)
-    p[sl["rotor_hz_at_1A"]] = 120.0
-    p[sl["rotor_damping_per_s"]] = 60.0
-    p[sl["detent"]] = (0.004, 0.002, 0.001, 0.0)
-    for _ in range(40):
-        motion = Model(spec, obs).predicted(p)
-        settled = float(np.abs(motion - obs.phasors).max()) < 1e-9
-        obs = replace(obs, phasors=motion)
-        if settled:
-            break
-    assert settled, "the synthetic motion did not settle"
-    rng = np.random.default_rng(seed)
-    noise = rng.standard_normal((count, DIAGNOSIS_ORDERS, 2)) @ np.array([1.0, 1j])
-    return replace(obs, phasors=obs.phasors + noise * NOISE_MPS2 / math.sqrt(2.0))
+SOURCE = "recordings/SN900024-characterize.blf"
+CASE = Case(TrialClass(frozenset({Effect.DETENT_TORQUE})), 24)
+"""A development seed: a disk unit whose cogging the diagnosis names."""
 
 
 @pytest.fixture(scope="module")
-def diagnosis() -> Diagnosis:
-    result = diagnose_observations(_observations())
-    assert result.effects, "the synthetic cogging must be named for the page to show an effect"
+def diagnosis(tmp_path_factory: pytest.TempPathFactory) -> Diagnosis:
+    root = tmp_path_factory.mktemp("report-recording")
+    (root / "rec").mkdir()
+    (root / "truth").mkdir()
+    plan = plan_trial(CASE)
+    out = record_trial(plan, root / "rec" / "unit.blf", root / "truth" / "unit.json")
+    result = diagnose(read_recording(out))
+    assert Effect.DETENT_TORQUE in {e.effect for e in result.effects}, result.to_dict()["effects"]
     return result
 
 
@@ -120,7 +57,8 @@ def page(report_path: Path) -> str:
 
 def _text(page: str) -> str:
     """The page without its figures and tags: what a reader reads."""
-    return re.sub(r"<[^>]+>", " ", re.sub(r"<svg.*?</svg>", " ", page, flags=re.S))
+    bare = re.sub(r"<[^>]+>", " ", re.sub(r"<svg.*?</svg>", " ", page, flags=re.S))
+    return " ".join(html.unescape(bare).split())
 
 
 def test_report_is_one_self_contained_html_page(page: str) -> None:
@@ -135,7 +73,7 @@ def test_report_names_the_drive_the_recording_and_the_verdict(
 ) -> None:
     fit = diagnosis.to_dict()["fit"]
     text = _text(page)
-    assert "SN1" in text
+    assert diagnosis.observations.metadata.serial in text
     assert SOURCE in text
     assert "Mismatch" in text
     assert f"{fit['before']:.3g}" in text
@@ -143,23 +81,47 @@ def test_report_names_the_drive_the_recording_and_the_verdict(
     assert f"{fit['after_chi2']:.1f}" in text
 
 
-def test_report_lists_every_named_effect_with_its_parameters(
+def test_report_shows_each_named_effect_with_its_evidence_and_parameters(
     diagnosis: Diagnosis, page: str
 ) -> None:
     text = _text(page)
+    assert "evidence: located cells it explains" in text
     for effect in diagnosis.effects:
         assert effect.effect.value in text
-    assert "order_4.peak_percent_of_rated_holding_torque" in text  # flattened, σ beside it
-    assert "order_4.sigma_percent" not in text
+        for key, order, before, after in effect.explains:
+            assert f"{key.label()}, order {order}" in text
+            assert f"{before:.1f} → {after:.1f}" in text
+    detent = next(e for e in diagnosis.effects if e.effect is Effect.DETENT_TORQUE)
+    assert detent.explains, "cogging must explain located cells for the page to show them"
+    assert "± " in text  # parameters carry their σ
 
 
-def test_report_shows_measured_nominal_and_extended_harmonics(page: str) -> None:
+def test_report_says_when_what_is_left_is_noise(diagnosis: Diagnosis, page: str) -> None:
+    text = _text(page)
+    if diagnosis.unexplained.significant:
+        assert "A significant residual is left" in text
+    else:
+        assert "is noise: χ²" in text
+        assert "A significant residual is left" not in text
+
+
+def test_report_says_plainly_when_a_significant_residual_is_left(diagnosis: Diagnosis) -> None:
+    left = Unexplained(chi2=9876.0, values=1200, significant=True)
+    text = _text(render_html(replace(diagnosis, unexplained=left), source=SOURCE))
+    assert "A significant residual is left" in text
+    assert "9876.0 for 1200 values" in text
+    assert "No id describes what remains" in text
+
+
+def test_report_shows_measured_nominal_and_extended_harmonics(
+    diagnosis: Diagnosis, page: str
+) -> None:
     assert page.count("<svg") >= 3
     for legend in ("measured, ±σ", "nominal model", "extended model"):
         assert legend in page
-    for order in range(1, DIAGNOSIS_ORDERS + 1):
+    for order in range(1, diagnosis.observations.orders + 1):
         assert f"order {order}" in page
-    for key in CONDITIONS:
+    for key in diagnosis.observations.conditions:
         assert key.label() in page
 
 
@@ -170,18 +132,27 @@ def test_report_maps_where_the_nominal_model_fails_and_the_trims_drift(page: str
     assert "optimal gain split (1/10000)" in page
 
 
+def test_report_lists_holds_used_and_skipped(diagnosis: Diagnosis, page: str) -> None:
+    text = _text(page)
+    obs = diagnosis.observations
+    assert f"{obs.count} segments used, {obs.model_settled} of them" in text
+    for skipped in obs.skipped:
+        assert skipped.reason in text
+
+
 def test_report_tables_located_entries_naming_rounds_and_thresholds(
     diagnosis: Diagnosis, page: str
 ) -> None:
     text = _text(page)
-    harmonic = sum(loc.kind is LocatedKind.HARMONIC for loc in diagnosis.located)
-    assert f"{harmonic} harmonic entries located" in text
-    assert page.count("<td>harmonic</td>") == min(harmonic, MAX_HARMONIC_ROWS)
-    assert f"Round {len(diagnosis.rounds)}:" in text
-    for trial in diagnosis.rounds[0].trials:
-        assert trial.effect.value in text
-    for threshold in ("SIGNIFICANT_CONFIDENCE", "MIN_GAIN_CHI2", "MIN_GAIN_FRACTION",
-                      "SEPARABLE_RATIO"):
+    located = [loc for loc in diagnosis.located
+               if loc.kind in (LocatedKind.HARMONIC, LocatedKind.UNEXPLAINED)]
+    assert f"{len(located)} harmonic entries located" in text
+    assert page.count("<td>nominal residual</td>") + page.count("<td>unexplained</td>") == min(
+        len(located), MAX_HARMONIC_ROWS)
+    for rnd in diagnosis.rounds:
+        for test in rnd.tried:
+            assert test.larger.label in text
+    for threshold in ("SIGNIFICANT_CONFIDENCE", "MAX_EFFECTS", "RIVAL_Z", "UNEXPLAINED_RATIO"):
         assert threshold in text
 
 

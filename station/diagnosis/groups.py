@@ -1,0 +1,359 @@
+"""What the diagnosis knows about each term group besides its equations.
+
+The equations are in ``station.diagnosis.model`` (one model, every group a
+switch on it). Here, per vocabulary id: where a fit of the group should start
+(the nonlinear parameters are multimodal: a drifting clock's rate, a coupling's
+frequency), how its fitted parameters read in physical or relative units with
+their 1σ, and which experiment would separate it from a rival the data cannot
+tell it from.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.core import Effect
+from station.diagnosis.fit import Fit, screen
+from station.diagnosis.model import (
+    DETENT_ORDERS,
+    DISTORTION_ORDERS,
+    FLUX_ORDERS,
+    ChainKind,
+    Model,
+)
+
+Starts = dict[str, list[float]]
+
+
+def _starts_resonance(model: Model, p: NDArray[np.float64]) -> list[Starts]:
+    hz = [30.0, 60.0, 120.0, 240.0, 480.0, 960.0, 1900.0]
+    return [{"log_coupling_hz": [math.log(f)], "coupling_fraction": [frac]}
+            for f in hz for frac in (0.2, 0.6)]
+
+
+def _starts_lag(model: Model, p: NDArray[np.float64]) -> list[Starts]:
+    # A lag looks like a negative sensor delay: start with the sensor's share moved over.
+    a1 = float(p[model.layout.slices["sensor_a1_ms"]][0])
+    return [{"current_lag_ms": [lag, lag], "sensor_a1_ms": [a1 + lag]}
+            for lag in (0.2, 0.6, 1.5, 4.0)]
+
+
+def _starts_friction(model: Model, p: NDArray[np.float64]) -> list[Starts]:
+    return [{"log_friction_smoothing": [math.log(eps)]} for eps in (0.002, 0.02, 0.2, 2.0)]
+
+
+def segment_delays(model: Model, p: NDArray[np.float64]
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Each segment's extra delay (s) against what the model at ``p`` predicts, and its
+    weight: the phase of measured over predicted phasors, fitted as k·ω·d over orders."""
+    measured = model.obs.phasors
+    predicted = model.predicted(p)
+    w_order = np.abs(predicted) ** 2 / np.maximum(model.obs.sigma, 1e-12) ** 2
+    kw = model.obs.omega[:, None] * model.k[None, :]
+    phase = np.angle(measured * np.conj(predicted))
+    weight = np.sum(w_order * kw**2, axis=1)
+    delay = -np.sum(w_order * phase * kw, axis=1) / np.maximum(weight, 1e-300)
+    return delay, weight
+
+
+CLOCK_RATES_PPM = np.arange(-3000.0, 3000.5, 1.0)
+"""Drift rates scanned by the periodogram (a sawtooth of N samples resolves 1/N)."""
+
+
+def _starts_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
+    """Where the segments' own delays say the clock drifts.
+
+    A clock off by δ that holds its latest sample delays sample n by T·frac(c − nδ): the
+    phasor e^{2πi·d/T} then turns by 2πδ per sample, so the rate that best lines the
+    segments' delays up is the peak of a periodogram over δ. A clock that stamps its own
+    samples drifts as a line instead: a regression.
+    """
+    delay, weight = segment_delays(model, p)
+    t = model.obs.metadata.sync_period_s
+    n = model.obs.span.mean(axis=1)
+    if model.layout.has("clock_phase"):
+        z = weight[:, None] * np.exp(2j * np.pi * (delay[:, None] / t
+                                                   + n[:, None] * CLOCK_RATES_PPM[None, :] * 1e-6))
+        power = np.abs(z.sum(axis=0))
+        out: list[Starts] = []
+        for index in np.argsort(power)[::-1][:200]:
+            rate = float(CLOCK_RATES_PPM[index])
+            if any(abs(rate - s["clock_drift_ppm"][0]) < 20.0 for s in out):
+                continue
+            phase = float(np.angle(z[:, index].sum()) / (2 * np.pi)) % 1.0
+            out.append({"clock_drift_ppm": [rate], "clock_phase": [phase]})
+            if len(out) == 3:
+                break
+        return out
+    slope = np.polyfit(n, delay, 1, w=np.sqrt(weight))[0]
+    return [{"clock_drift_ppm": [float(-slope / t * 1e6)]}]
+
+
+MIN_CLOCK_PPM = 5.0
+"""A periodogram peak nearer no drift than this is the constant delay the base model has."""
+
+CLOCK_PHASES = 12
+"""Sawtooth phases tried at the periodogram's rate: the phase sets where the delays wrap,
+and a fit started half a period off settles in a wrong basin."""
+
+
+def _estimate_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
+    """At each of the periodogram's peaks: the sawtooth's phase over a grid, with the
+    sensor's delay as it is and less the sawtooth's mean (half a period, which the base
+    model had folded into it); the two that fit best once the linear parameters are
+    solved. A peak at no drift is the base model again and is passed over."""
+    peaks = _starts_clock(model, p)
+    if not model.layout.has("clock_phase"):
+        return peaks
+    a1 = float(p[model.layout.slices["sensor_a1_ms"]][0])
+    half = 0.5e3 * model.obs.metadata.sync_period_s
+    tried: list[Starts] = [
+        {**peak, "clock_phase": [phase], "sensor_a1_ms": [delay]}
+        for peak in peaks if abs(peak["clock_drift_ppm"][0]) >= MIN_CLOCK_PPM
+        for phase in (peak["clock_phase"][0] + np.arange(CLOCK_PHASES) / CLOCK_PHASES) % 1.0
+        for delay in (a1, max(0.0, a1 - half))
+    ]
+    starts = []
+    for values in tried:
+        x = p.copy()
+        for name, value in values.items():
+            x[model.layout.slices[name]] = value
+        starts.append(x)
+    return [{name: [float(v) for v in x[model.layout.slices[name]]]
+             for name in ("clock_drift_ppm", "clock_phase", "sensor_a1_ms")}
+            for _, x in screen(model, starts)[:2]]
+
+
+GROUP_ESTIMATES: dict[Effect, Callable[[Model, NDArray[np.float64]], list[Starts]]] = {
+    Effect.SENSOR_CLOCK_DRIFT: _estimate_clock,
+}
+"""Groups whose nonlinear parameters the data can estimate before any search: that start
+is always searched from, whatever its χ² before the search."""
+
+GROUP_STARTS: dict[Effect, Callable[[Model, NDArray[np.float64]], list[Starts]]] = {
+    Effect.LOAD_RESONANCE: _starts_resonance,
+    Effect.CURRENT_LOOP_LAG: _starts_lag,
+    Effect.FRICTION: _starts_friction,
+    Effect.SENSOR_CLOCK_DRIFT: _starts_clock,
+}
+"""Groups whose nonlinear parameters need more than one start; the linear ones start at
+zero (absent) and are solved."""
+
+
+# --------------------------------------------------------------------------- parameters
+def _pair(values: NDArray[np.float64], sigma: NDArray[np.float64], scale: float
+          ) -> dict[str, float]:
+    """A (sin, cos) or (re, im) coefficient pair as magnitude ± σ and phase."""
+    mag = math.hypot(values[0], values[1])
+    err = math.hypot(sigma[0], sigma[1]) / math.sqrt(2.0)
+    return {"magnitude": mag * scale, "sigma": err * scale,
+            "phase_rad": math.atan2(values[1], values[0])}
+
+
+def _value(fit: Fit, sig: NDArray[np.float64], name: str, scale: float = 1.0
+           ) -> tuple[float, float]:
+    sl = fit.model.layout.slices[name]
+    return float(fit.params[sl][0]) * scale, float(sig[sl][0]) * scale
+
+
+def _log_value(fit: Fit, sig: NDArray[np.float64], name: str) -> tuple[float, float]:
+    value, err = _value(fit, sig, name)
+    return math.exp(value), math.exp(value) * err
+
+
+def _flux(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    sl = fit.model.layout.slices["flux"]
+    v, s = fit.params[sl], sig[sl]
+    out: dict[str, Any] = {}
+    for i, j in enumerate(FLUX_ORDERS):
+        for p, phase in enumerate(("a", "b")):
+            k = 4 * i + 2 * p
+            pair = _pair(v[k:k + 2], s[k:k + 2], 100.0)
+            out[f"order_{j}_phase_{phase}"] = {
+                "relative_to_Lm1_percent": pair["magnitude"],
+                "sigma_percent": pair["sigma"], "phase_rad": pair["phase_rad"]}
+    return out
+
+
+def _distortion(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    sl = fit.model.layout.slices["distortion"]
+    v, s = fit.params[sl], sig[sl]
+    out: dict[str, Any] = {}
+    for i, h in enumerate(DISTORTION_ORDERS):
+        for p, phase in enumerate(("a", "b")):
+            k = 4 * i + 2 * p
+            pair = _pair(np.array([v[k], -v[k + 1]]), s[k:k + 2], 100.0)
+            out[f"order_{h}_phase_{phase}"] = {
+                "relative_to_fundamental_percent": pair["magnitude"],
+                "sigma_percent": pair["sigma"], "phase_rad": pair["phase_rad"]}
+    return out
+
+
+def _detent(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    sl = fit.model.layout.slices["detent"]
+    v, s = fit.params[sl], sig[sl]
+    rated = fit.model.rated_A
+    out: dict[str, Any] = {}
+    for i, d in enumerate(DETENT_ORDERS):
+        pair = _pair(v[2 * i:2 * i + 2], s[2 * i:2 * i + 2], 100.0 / rated)
+        out[f"order_{d}"] = {"peak_percent_of_rated_holding_torque": pair["magnitude"],
+                             "sigma_percent": pair["sigma"], "phase_rad": pair["phase_rad"]}
+    return out
+
+
+def _reluctance(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    rated = fit.model.rated_A
+    value, err = _value(fit, sig, "reluctance", 100.0 * rated)
+    # τ_vr peaks at Nr·L1·I²; in Kt units per A² the coefficient is Nr·L1/Kt.
+    return {"peak_percent_of_holding_torque_at_rated": value, "sigma_percent": err}
+
+
+def _resonance(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    hz, hz_err = _log_value(fit, sig, "log_coupling_hz")
+    zeta, zeta_err = _value(fit, sig, "coupling_damping_ratio")
+    frac, frac_err = _value(fit, sig, "coupling_fraction")
+    where = "rotor and disk" if fit.model.spec.chain is ChainKind.RIGID else "rotor and pulley"
+    return {"coupling_resonance_hz": hz, "coupling_resonance_hz_sigma": hz_err,
+            "damping_ratio": zeta, "damping_ratio_sigma": zeta_err,
+            "inertia_fraction_beyond_coupling": frac,
+            "inertia_fraction_beyond_coupling_sigma": frac_err,
+            "between": where}
+
+
+def _lag(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    sl = fit.model.layout.slices["current_lag_ms"]
+    v, s = fit.params[sl], sig[sl]
+    return {
+        "time_constant_a_ms": float(v[0]), "time_constant_a_ms_sigma": float(s[0]),
+        "time_constant_b_ms": float(v[1]), "time_constant_b_ms_sigma": float(s[1]),
+        "bandwidth_a_hz": 1e3 / (2 * math.pi * float(v[0])) if v[0] > 0 else None,
+        "bandwidth_b_hz": 1e3 / (2 * math.pi * float(v[1])) if v[1] > 0 else None,
+        "note": ("a current loop's lag and the sensor's own delay look alike at low "
+                 "frequency; the time constants are what the sensor's delay cannot hide"),
+    }
+
+
+def _friction(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    sl = fit.model.layout.slices["friction_coulomb"]
+    v, s = fit.params[sl], sig[sl]
+    rated = fit.model.rated_A
+    ratio = fit.model.gear_ratio
+    # Coulomb levels are load torques in Kt units; seen at the motor they are ·n.
+    scale = 100.0 * ratio / rated
+    out: dict[str, Any] = {
+        "coulomb_forward_percent_of_rated_holding_torque": float(v[0]) * scale,
+        "coulomb_forward_sigma_percent": float(s[0]) * scale,
+        "coulomb_reverse_percent_of_rated_holding_torque": float(v[1]) * scale,
+        "coulomb_reverse_sigma_percent": float(s[1]) * scale,
+        "smoothing_relative_to_top_speed": math.exp(fit.scalar("log_friction_smoothing")),
+        "note": "viscous friction is in the chain's damping (nominal)",
+    }
+    return out
+
+
+def _clock(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    value, err = _value(fit, sig, "clock_drift_ppm")
+    out: dict[str, Any] = {"clock_drift_ppm": value, "clock_drift_ppm_sigma": err,
+                           "sample_timing": ("latest sample held for each SYNC"
+                                             if fit.model.spec.clock_wraps
+                                             else "sample times drift without wrapping")}
+    if fit.model.layout.has("clock_phase"):
+        out["sample_phase"] = float(fit.scalar("clock_phase")) % 1.0
+    return out
+
+
+def _saturation(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    sl = fit.model.layout.slices["saturation"]
+    d, e = (float(v) for v in fit.params[sl])
+    sd, se = (float(v) for v in sig[sl])
+    # The fall at rated current is D − E; its σ is bounded by the two σ added in
+    # quadrature with full anticorrelation ignored (the conservative side).
+    return {"kt_drop_at_rated_percent": 100.0 * (d - e),
+            "sigma_percent": 100.0 * math.hypot(sd, se),
+            "kt_drop_at_half_rated_percent": 100.0 * (d / 4 - e / 16),
+            "law": "Kt(|i|)/Kt(0) = 1 − D·u² + E·u⁴, u = |i|/I_rated",
+            "D": d, "D_sigma": sd, "E": e, "E_sigma": se}
+
+
+def _eccentricity(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
+    sl = fit.model.layout.slices["eccentricity"]
+    pair = _pair(fit.params[sl], sig[sl], 100.0)
+    return {"torque_modulation_percent": pair["magnitude"], "sigma_percent": pair["sigma"],
+            "phase_rad": pair["phase_rad"],
+            "note": "once per mechanical revolution of the rotor, on the magnet's torque"}
+
+
+GROUP_PARAMETERS: dict[Effect, Callable[[Fit, NDArray[np.float64]], dict[str, Any]]] = {
+    Effect.FLUX_HARMONICS: _flux,
+    Effect.CURRENT_DISTORTION: _distortion,
+    Effect.DETENT_TORQUE: _detent,
+    Effect.RELUCTANCE_TORQUE: _reluctance,
+    Effect.LOAD_RESONANCE: _resonance,
+    Effect.CURRENT_LOOP_LAG: _lag,
+    Effect.FRICTION: _friction,
+    Effect.SENSOR_CLOCK_DRIFT: _clock,
+    Effect.MAGNETIC_SATURATION: _saturation,
+    Effect.ROTOR_ECCENTRICITY: _eccentricity,
+}
+
+
+# --------------------------------------------------------------------------- separating
+_BY_CURRENT = ("characterize at more currents, including a low one (a third of rated or less): "
+               "{a} and {b} scale differently with the current amplitude")
+_BY_PROBE = ("record the phase currents (the drive's current sense or a current probe) while "
+             "running: {a} shows in the current waveform, {b} does not")
+
+SEPARATING_EXPERIMENTS: dict[frozenset[Effect], str] = {
+    frozenset({Effect.FLUX_HARMONICS, Effect.CURRENT_DISTORTION}): (
+        "record the phase currents (drive current sense or a current probe) while running: "
+        "distortion shows in the current waveform, flux harmonics do not; or back-drive the "
+        "motor with the drive disabled and record the back-EMF, whose harmonics are the flux's"
+    ),
+    frozenset({Effect.FLUX_HARMONICS, Effect.DETENT_TORQUE}): (
+        "repeat the characterization at more currents including a low one: cogging torque "
+        "does not change with current, flux-harmonic torque grows with it"
+    ),
+    frozenset({Effect.DETENT_TORQUE, Effect.CURRENT_DISTORTION}): (
+        "record the drive's phase currents, or run at more currents: cogging does not change "
+        "with current, distortion torque grows with it"
+    ),
+    frozenset({Effect.LOAD_RESONANCE, Effect.RELUCTANCE_TORQUE}): (
+        "tap test or speed sweep with the rotor held: a compliant coupling keeps its frequency "
+        "whatever the current, the magnetic spring's frequency moves with it"
+    ),
+    frozenset({Effect.MAGNETIC_SATURATION, Effect.RELUCTANCE_TORQUE}): (
+        "characterize at more currents (a third of rated, and above rated if the drive allows "
+        "it briefly): saturation's loss of torque grows faster than I², reluctance's spring "
+        "grows as I²; or measure the holding torque against current with a torque wrench"
+    ),
+    frozenset({Effect.CURRENT_LOOP_LAG, Effect.SENSOR_CLOCK_DRIFT}): (
+        "repeat with the sensor's sampling locked to SYNC (or a sensor whose clock is "
+        "known): a lagging current loop keeps its phase shift, a drifting clock's changes "
+        "along the recording"
+    ),
+    frozenset({Effect.CURRENT_LOOP_LAG, Effect.LOAD_RESONANCE}): (
+        "record the phase currents while running: a lagging loop shows its phase shift "
+        "in the current against the commanded angle; a compliance does not"
+    ),
+    frozenset({Effect.FRICTION, Effect.LOAD_RESONANCE}): (
+        "repeat at higher speeds with the unit trimmed: friction's harmonics need the load "
+        "to stall within a period, a compliance's response does not"
+    ),
+    frozenset({Effect.ROTOR_ECCENTRICITY, Effect.SENSOR_CLOCK_DRIFT}): (
+        "hold one condition for several mechanical revolutions: eccentricity repeats with the "
+        "rotor's angle, a drifting clock with time"
+    ),
+}
+DEFAULT_EXPERIMENT = (
+    "repeat the characterization with more speeds and currents, and trim steps of both signs, "
+    "so that the two term groups' signatures (order, current scaling, load angle) part"
+)
+
+
+def separating_experiment(a: Effect, b: Effect) -> str:
+    return SEPARATING_EXPERIMENTS.get(frozenset({a, b}), DEFAULT_EXPERIMENT)
