@@ -317,7 +317,12 @@ def fit_parabola(points: Sequence[TrimPoint], axis: TrimAxis) -> tuple[ParabolaF
     minimum = min(x.size, 5 if distinct >= 5 else distinct)
     idx, best, accepted = _nearest_windows(x, fit, minimum)
     warnings: list[str] = []
-    c2, c2_sigma = best.coef[2], math.sqrt(best.cov[2, 2]) * _birge(best.quality)
+    variance = float(best.cov[2, 2])
+    if not (math.isfinite(variance) and variance >= 0.0):
+        # A negative variance is a singular fit rounded the wrong way, not a measurement.
+        raise Unsupported(f"{axis.value}: the sweep's points do not determine a parabola "
+                          "(singular fit)")
+    c2, c2_sigma = best.coef[2], math.sqrt(variance) * _birge(best.quality)
     if c2 <= 2.0 * c2_sigma:
         raise Unsupported(
             f"{axis.value}: flat parabola (curvature {c2:.3g} ± {c2_sigma:.2g} is not "

@@ -85,11 +85,15 @@ BEAM = 2
 REGRID_CHI2 = 3.0
 """A base fitting worse than this χ²/dof has likely bent its chain: new groups are also
 started from the chain grid."""
+REGRID_KEEP = 2
+"""Best chain-grid points (with the new groups solved) searched from when regridding."""
 REWEIGHT_CHANGE = math.log(1.3)
 """Weights that moved by more than 30 % (at the 99th percentile) call for a second pass."""
-PROMISING = 5
-"""Groups carried into combinations: those significant alone and the best few by their
-χ² gain alone (an effect masked by a stronger one still gains something alone)."""
+PROMISING = 4
+"""Groups carried as rivals and into the beam's second model: the best few by their χ²
+gain alone, if they gain at least ``PROMISING_SHARE`` of the best one's (the best model
+of each size tries every group anyway)."""
+PROMISING_SHARE = 0.25
 
 RIVAL_Z = 2.0
 """A rival whose held-out χ² is within this many standard errors of the winner's (paired
@@ -326,7 +330,9 @@ class Diagnosis:
             },
             "unexplained": self.unexplained.as_dict(),
             "findings": [f.as_dict() for f in self.findings],
-            "nominal": nominal_parameters(self.nominal.fit, self.judgements),
+            # The chain, trims and sensor as the chosen model found them (the nominal
+            # model's own when nothing is named).
+            "nominal": nominal_parameters(self.extended.fit, self.judgements),
             "conditions": [c.as_dict() for c in obs.conditions],
             "segments": obs.count,
             "segments_settled_by_model": obs.model_settled,
@@ -474,6 +480,11 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
         estimate = GROUP_ESTIMATES.get(effect)
         if estimate is not None:
             estimated += [_with(model, start, values) for values in estimate(model, start)]
+    if not base.model.spec.effects and base.chi2 > REGRID_CHI2 * base.dof:
+        # The nominal bent its chain to hide what it lacks: the chain grid again, with the
+        # new groups' linear parts solved at every point, finds the chain they leave
+        # behind. Larger models start from the chain their best subset found.
+        estimated += [x for _, x in screen(model, nominal_starts(model))[:REGRID_KEEP]]
     result = fit(model, starts, keep=2, estimated=estimated)
     if free is not None and base.chi2 > REGRID_CHI2 * base.dof:
         # The unbent chain and load angles, with the new groups' linear parts solved: these
@@ -743,8 +754,10 @@ def _beam(search: Search, progress: Callable[[str], None] | None
     candidates: tuple[Effect, ...] = tuple(Effect)
     for size in range(1, MAX_EFFECTS + 1):
         tried: dict[frozenset[Effect], Test] = {}
-        for parent in frontier:
-            for effect in candidates:
+        for rank, parent in enumerate(frontier):
+            # A strong effect can hide a weak one in the first round: the best model so
+            # far tries every group, the rest of the beam only the promising ones.
+            for effect in (tuple(Effect) if rank == 0 else candidates):
                 if effect in parent.effects:
                     continue
                 effects = parent.effects | {effect}
@@ -753,8 +766,9 @@ def _beam(search: Search, progress: Callable[[str], None] | None
                 tried[effects] = compare(parent, search.get(effects))
         if size == 1:
             ranked = sorted(tried.values(), key=lambda t: t.chi2_gain, reverse=True)
-            keep = [t for t in ranked if t.significant] + ranked[:PROMISING]
-            candidates = tuple(dict.fromkeys(next(iter(t.larger.effects)) for t in keep))
+            top = max(ranked[0].chi2_gain, 0.0)
+            keep = [t for t in ranked if t.chi2_gain >= PROMISING_SHARE * top][:PROMISING]
+            candidates = tuple(next(iter(t.larger.effects)) for t in keep or ranked[:1])
         winners = [t for t in tried.values() if t.significant]
         winners.sort(key=lambda t: t.larger.held.total)
         chosen = None
@@ -768,7 +782,7 @@ def _beam(search: Search, progress: Callable[[str], None] | None
             break
         current = chosen
         frontier = [t.larger for t in winners[:BEAM]]
-    return current, rounds, candidates
+    return current, rounds, tuple(dict.fromkeys((*candidates, *current.effects)))
 
 
 def _prune(search: Search, model: Candidate) -> Candidate:
@@ -813,8 +827,7 @@ def _explained_cells(before: Candidate, after: Candidate
     return tuple(cells[:12])
 
 
-def _local(search: Search, around: frozenset[Effect], candidates: tuple[Effect, ...]
-           ) -> tuple[Candidate, list[Round]]:
+def _local(search: Search, around: frozenset[Effect]) -> tuple[Candidate, list[Round]]:
     """From a known answer, one group at a time: add the best that beats it, repeat.
 
     What a second pass needs when only the weights moved: the first pass already
@@ -824,7 +837,7 @@ def _local(search: Search, around: frozenset[Effect], candidates: tuple[Effect, 
     rounds: list[Round] = []
     while len(current.effects) < MAX_EFFECTS:
         tried = tuple(compare(current, search.get(current.effects | {e}))
-                      for e in candidates if e not in current.effects)
+                      for e in Effect if e not in current.effects)
         winners = sorted((t for t in tried if t.significant), key=lambda t: t.larger.held.total)
         chosen = winners[0].larger if winners else None
         rounds.append(Round(len(current.effects) + 1, tried, chosen))
@@ -844,7 +857,7 @@ def name_effects(search: Search, progress: Callable[[str], None] | None = None,
         best, rounds, candidates = _beam(search, progress)
     else:
         candidates = around[1]
-        best, rounds = _local(search, around[0], candidates)
+        best, rounds = _local(search, around[0])
     best = _prune(search, best)
     left = unexplained_of(best)
     if left.significant:
@@ -948,7 +961,9 @@ def diagnose_observations(obs: Observations, progress: Callable[[str], None] | N
                 progress("judging again with the chosen model's modes weighted")
             fits = again
         obs = nominal_fit.model.obs
-        judgements = judge_parameters(nominal_fit, unresolved_sigma=UNRESOLVED_SIGMA)
+        # Judged on the chosen model: a nominal fit bent by an effect it lacks presses its
+        # bounds, and that is the effect's doing, not the chain's.
+        judgements = judge_parameters(extended.fit, unresolved_sigma=UNRESOLVED_SIGMA)
         findings = bound_findings(judgements)
         constants = per_condition_constants(nominal_fit)
         located = locate_harmonics(nominal_fit) + locate_drift(*constants, obs.conditions)

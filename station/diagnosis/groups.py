@@ -65,7 +65,7 @@ CLOCK_RATES_PPM = np.arange(-3000.0, 3000.5, 1.0)
 """Drift rates scanned by the periodogram (a sawtooth of N samples resolves 1/N)."""
 
 
-def _starts_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
+def _starts_clock(model: Model, p: NDArray[np.float64], peaks: int = 3) -> list[Starts]:
     """Where the segments' own delays say the clock drifts.
 
     A clock off by δ that holds its latest sample delays sample n by T·frac(c − nδ): the
@@ -87,7 +87,7 @@ def _starts_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
                 continue
             phase = float(np.angle(z[:, index].sum()) / (2 * np.pi)) % 1.0
             out.append({"clock_drift_ppm": [rate], "clock_phase": [phase]})
-            if len(out) == 3:
+            if len(out) == peaks:
                 break
         return out
     slope = np.polyfit(n, delay, 1, w=np.sqrt(weight))[0]
@@ -96,6 +96,10 @@ def _starts_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
 
 MIN_CLOCK_PPM = 5.0
 """A periodogram peak nearer no drift than this is the constant delay the base model has."""
+
+CLOCK_PEAKS = 8
+"""Periodogram peaks screened: segments spaced alike alias the true rate, and their
+delays are noisy, so the true rate need not be the highest peak."""
 
 CLOCK_PHASES = 12
 """Sawtooth phases tried at the periodogram's rate: the phase sets where the delays wrap,
@@ -107,7 +111,7 @@ def _estimate_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
     sensor's delay as it is and less the sawtooth's mean (half a period, which the base
     model had folded into it); the two that fit best once the linear parameters are
     solved. A peak at no drift is the base model again and is passed over."""
-    peaks = _starts_clock(model, p)
+    peaks = _starts_clock(model, p, CLOCK_PEAKS)
     if not model.layout.has("clock_phase"):
         return peaks
     a1 = float(p[model.layout.slices["sensor_a1_ms"]][0])

@@ -39,7 +39,7 @@ BEYOND_NYQUIST = 0.4
 """Orders above the modelled ones enter the motion only below this fraction of the
 sample rate, where the sensor's harmonics are not aliases."""
 
-MODEL_FLOOR = 0.01
+MODEL_FLOOR = 0.003
 """Relative uncertainty of any model's torque balance: how far a model of a real chain
 (or another simulator's integration of it) can be trusted. Applied to each phasor times
 the chain's magnification of a torque error there (``Observations.with_floor``): far

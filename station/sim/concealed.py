@@ -35,6 +35,7 @@ from typing import Any, Final
 
 import numpy as np
 
+from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind, Trims
 from station.paths import HOME_ENV
 from station.physics.params import UnitParams, UnnamedEffect
@@ -184,15 +185,13 @@ def _friction_within_reach(unit: UnitParams, schedule: Schedule) -> UnitParams:
     return replace(unit, mechanics=replace(unit.mechanics, load_friction=scaled))
 
 
-def _range_for(unit: UnitParams, schedule: Schedule, seed: int) -> int:
-    """The smallest sensor range every hold's steady peaks fit in, from a first run at 16 g.
+def _steady_peak(timeline: Timeline, schedule: Schedule) -> float:
+    """The largest steady acceleration peak of any moving hold (m/s²).
 
     Peaks are taken over the second half of each hold (the transients of a speed change
     may clip; a steady condition must not), so a fast condition that is a small part of
     the run still sets the range.
     """
-    widest = max(SENSOR_RANGES_G)
-    timeline = simulate_timeline(unit, replace(schedule, sensor_range_g=widest), seed=seed)
     meta = timeline.metadata
     counts = np.abs(timeline.accel_counts[:, meta.tangential_axis.column].astype(np.float64))
     valid = timeline.sensor_valid & (timeline.amplitude_mA > 0)
@@ -205,10 +204,15 @@ def _range_for(unit: UnitParams, schedule: Schedule, seed: int) -> int:
         if hold.velocity and steady.size:
             peak = max(peak, float(np.quantile(steady, 0.999)) * meta.sensor_lsb_mps2)
         start = stop
+    return peak
+
+
+def _range_for(peak_mps2: float) -> int:
+    """The smallest sensor range the steady peaks fit in."""
     for range_g in SENSOR_RANGES_G:
-        if peak < RANGE_MARGIN * range_g * STANDARD_GRAVITY:
+        if peak_mps2 < RANGE_MARGIN * range_g * STANDARD_GRAVITY:
             return range_g
-    return widest
+    return max(SENSOR_RANGES_G)
 
 
 def plan_trial(case: Case) -> TrialPlan:
@@ -219,8 +223,11 @@ def plan_trial(case: Case) -> TrialPlan:
     center = _center(rng, unit)
     schedule = _schedule(rng, center)
     unit = _friction_within_reach(unit, schedule)
+    # A first run at the widest range: the range a careful engineer would then set.
+    probe = replace(schedule, sensor_range_g=max(SENSOR_RANGES_G))
+    run = simulate_timeline(unit, probe, seed=case.seed)
     schedule = replace(schedule, name="characterization",
-                       sensor_range_g=_range_for(unit, schedule, case.seed))
+                       sensor_range_g=_range_for(_steady_peak(run, probe)))
     loss = float(rng.uniform(0.0, 0.01))
     return TrialPlan(case, unit, schedule, loss, center)
 
