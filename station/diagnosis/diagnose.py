@@ -827,7 +827,8 @@ def _explained_cells(before: Candidate, after: Candidate
     return tuple(cells[:12])
 
 
-def _local(search: Search, around: frozenset[Effect]) -> tuple[Candidate, list[Round]]:
+def _local(search: Search, around: frozenset[Effect], candidates: tuple[Effect, ...]
+           ) -> tuple[Candidate, list[Round]]:
     """From a known answer, one group at a time: add the best that beats it, repeat.
 
     What a second pass needs when only the weights moved: the first pass already
@@ -837,7 +838,7 @@ def _local(search: Search, around: frozenset[Effect]) -> tuple[Candidate, list[R
     rounds: list[Round] = []
     while len(current.effects) < MAX_EFFECTS:
         tried = tuple(compare(current, search.get(current.effects | {e}))
-                      for e in Effect if e not in current.effects)
+                      for e in candidates if e not in current.effects)
         winners = sorted((t for t in tried if t.significant), key=lambda t: t.larger.held.total)
         chosen = winners[0].larger if winners else None
         rounds.append(Round(len(current.effects) + 1, tried, chosen))
@@ -857,7 +858,7 @@ def name_effects(search: Search, progress: Callable[[str], None] | None = None,
         best, rounds, candidates = _beam(search, progress)
     else:
         candidates = around[1]
-        best, rounds = _local(search, around[0])
+        best, rounds = _local(search, around[0], candidates)
     best = _prune(search, best)
     left = unexplained_of(best)
     if left.significant:
