@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, fields, is_dataclass
+from dataclasses import dataclass, fields, is_dataclass, replace
 from enum import Enum, StrEnum
 from typing import Any
 
@@ -629,6 +629,49 @@ def _concealed_effects(label: str) -> frozenset[Effect]:
     return frozenset(e for e in Effect if rng.random() < EFFECT_PROBABILITY)
 
 
+@dataclass(frozen=True)
+class DrawnEffects:
+    """A unit's magnitudes of every motor and amplifier effect, drawn whether on or not.
+
+    Drawing them all keeps a unit the same unit whichever effects are switched on:
+    its twin without an effect differs in that effect alone.
+    """
+
+    L1_H: float
+    flux_a: tuple[FluxHarmonic, ...]
+    flux_b: tuple[FluxHarmonic, ...]
+    detent: tuple[DetentHarmonic, ...]
+    saturation_current_A: float
+    eccentricity: Eccentricity
+    distortion_a: tuple[CurrentHarmonic, ...]
+    distortion_b: tuple[CurrentHarmonic, ...]
+    bandwidth_a_hz: float
+    bandwidth_b_hz: float
+
+    def switched(self, motor: MotorParams, amplifier: AmplifierParams,
+                 on: frozenset[Effect]) -> tuple[MotorParams, AmplifierParams]:
+        """``motor`` and ``amplifier`` with exactly the effects in ``on``."""
+        lag = Effect.CURRENT_LOOP_LAG in on
+        distort = Effect.CURRENT_DISTORTION in on
+        flux = Effect.FLUX_HARMONICS in on
+        return replace(
+            motor,
+            L1_H=self.L1_H if Effect.RELUCTANCE_TORQUE in on else 0.0,
+            flux_a=self.flux_a if flux else (),
+            flux_b=self.flux_b if flux else (),
+            detent=self.detent if Effect.DETENT_TORQUE in on else (),
+            saturation_current_A=(self.saturation_current_A
+                                  if Effect.MAGNETIC_SATURATION in on else None),
+            eccentricity=self.eccentricity if Effect.ROTOR_ECCENTRICITY in on else None,
+        ), replace(
+            amplifier,
+            distortion_a=self.distortion_a if distort else (),
+            distortion_b=self.distortion_b if distort else (),
+            bandwidth_a_hz=self.bandwidth_a_hz if lag else None,
+            bandwidth_b_hz=self.bandwidth_b_hz if lag else None,
+        )
+
+
 def derive_unit(
     serial: str,
     *,
@@ -657,37 +700,12 @@ def derive_unit(
                                  rated_A)
     eccentricity = draw_eccentricity(
         _stream(label, f"effect/{Effect.ROTOR_ECCENTRICITY.value}"), holding)
-    motor = MotorParams(
-        rotor_teeth=motor.rotor_teeth,
-        field_current_A=motor.field_current_A,
-        L0_H=motor.L0_H,
-        L1_H=l1 if Effect.RELUCTANCE_TORQUE in chosen else 0.0,
-        Lm0_H=motor.Lm0_H,
-        Lm1_H=motor.Lm1_H,
-        flux_a=flux_a if Effect.FLUX_HARMONICS in chosen else (),
-        flux_b=flux_b if Effect.FLUX_HARMONICS in chosen else (),
-        Lf0_H=motor.Lf0_H,
-        detent=detent if Effect.DETENT_TORQUE in chosen else (),
-        rotor_inertia_kgm2=motor.rotor_inertia_kgm2,
-        saturation_current_A=saturation if Effect.MAGNETIC_SATURATION in chosen else None,
-        eccentricity=eccentricity if Effect.ROTOR_ECCENTRICITY in chosen else None,
-    )
-
     amp = _draw_amplifier(label)
     dist_a, dist_b = _draw_distortion(label)
     bw_a, bw_b = _draw_loop_bandwidths(label)
-    distort = Effect.CURRENT_DISTORTION in chosen
-    lag = Effect.CURRENT_LOOP_LAG in chosen
-    amplifier = AmplifierParams(
-        offset_a_mA=amp.offset_a_mA,
-        offset_b_mA=amp.offset_b_mA,
-        gain_error_a=amp.gain_error_a,
-        gain_error_b=amp.gain_error_b,
-        distortion_a=dist_a if distort else (),
-        distortion_b=dist_b if distort else (),
-        bandwidth_a_hz=bw_a if lag else None,
-        bandwidth_b_hz=bw_b if lag else None,
-    )
+    drawn = DrawnEffects(l1, flux_a, flux_b, detent, saturation, eccentricity,
+                         dist_a, dist_b, bw_a, bw_b)
+    motor, amplifier = drawn.switched(motor, amp, chosen)
 
     disk = _draw_disk(label)
     belt = _draw_belt(label, motor, rated_A)

@@ -32,6 +32,7 @@ from station.physics.params import (
     CouplingParams,
     CurrentHarmonic,
     DiskParams,
+    DrawnEffects,
     FrictionParams,
     MechanicsParams,
     SensorParams,
@@ -322,37 +323,11 @@ def draw_unit(
     saturation = draw_saturation(_stream(seed, _Group.MAGNETIC_SATURATION), rated_A)
     eccentricity = draw_eccentricity(_stream(seed, _Group.ROTOR_ECCENTRICITY), holding)
     on = frozenset(Effect(e) for e in effects)
-    motor = MotorParams(
-        rotor_teeth=base.rotor_teeth,
-        field_current_A=base.field_current_A,
-        L0_H=base.L0_H,
-        L1_H=l1 if Effect.RELUCTANCE_TORQUE in on else 0.0,
-        Lm0_H=base.Lm0_H,
-        Lm1_H=base.Lm1_H,
-        flux_a=flux_a if Effect.FLUX_HARMONICS in on else (),
-        flux_b=flux_b if Effect.FLUX_HARMONICS in on else (),
-        Lf0_H=base.Lf0_H,
-        detent=detent if Effect.DETENT_TORQUE in on else (),
-        rotor_inertia_kgm2=base.rotor_inertia_kgm2,
-        saturation_current_A=saturation if Effect.MAGNETIC_SATURATION in on else None,
-        eccentricity=eccentricity if Effect.ROTOR_ECCENTRICITY in on else None,
-    )
-
-    amp = _amplifier(seed)
     dist_a, dist_b = _distortion(seed)
     bw_a, bw_b = _loop_bandwidths(seed)
-    distort = Effect.CURRENT_DISTORTION in on
-    lag = Effect.CURRENT_LOOP_LAG in on
-    amplifier = AmplifierParams(
-        offset_a_mA=amp.offset_a_mA,
-        offset_b_mA=amp.offset_b_mA,
-        gain_error_a=amp.gain_error_a,
-        gain_error_b=amp.gain_error_b,
-        distortion_a=dist_a if distort else (),
-        distortion_b=dist_b if distort else (),
-        bandwidth_a_hz=bw_a if lag else None,
-        bandwidth_b_hz=bw_b if lag else None,
-    )
+    drawn = DrawnEffects(l1, flux_a, flux_b, detent, saturation, eccentricity,
+                         dist_a, dist_b, bw_a, bw_b)
+    motor, amplifier = drawn.switched(base, _amplifier(seed), on)
 
     disk, disk_radius = _disk(seed)
     belt, belt_radius = _belt(seed, base.rotor_inertia_kgm2)
