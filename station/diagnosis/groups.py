@@ -307,11 +307,6 @@ GROUP_PARAMETERS: dict[Effect, Callable[[Fit, NDArray[np.float64]], dict[str, An
 
 
 # --------------------------------------------------------------------------- separating
-_BY_CURRENT = ("characterize at more currents, including a low one (a third of rated or less): "
-               "{a} and {b} scale differently with the current amplitude")
-_BY_PROBE = ("record the phase currents (the drive's current sense or a current probe) while "
-             "running: {a} shows in the current waveform, {b} does not")
-
 SEPARATING_EXPERIMENTS: dict[frozenset[Effect], str] = {
     frozenset({Effect.FLUX_HARMONICS, Effect.CURRENT_DISTORTION}): (
         "record the phase currents (drive current sense or a current probe) while running: "
