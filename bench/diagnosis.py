@@ -23,7 +23,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from bench.record import BenchRecord, Goal
-from station.sim.concealed import CLASSES, cases, confusion, fresh_seeds, run_trial
+from station.sim.concealed import CLASSES, REFUSED, cases, confusion, fresh_seeds, run_trial
 
 PER_CLASS = 8
 NAMED_TARGET = 0.9
@@ -56,9 +56,11 @@ def measure() -> list[BenchRecord]:
         exact = statistics.fmean(1.0 if t.score == 1.0 else 0.0 for t in mine)
         records.append(BenchRecord(f"diagnosis_named_exactly_{cls.label}", exact, "fraction",
                                    NAMED_TARGET, Goal.AT_LEAST))
+    refused = [t for t in trials if REFUSED in t.doc]
+    done = [t for t in trials if REFUSED not in t.doc]
     controls = [t for t in trials if t.case.cls.control]
     unnamed = [t for t in trials if t.case.cls.out_of_vocabulary]
-    named = [t for t in trials if t.doc["effects"]]
+    named = [t for t in done if t.doc["effects"]]
     records += [
         BenchRecord("diagnosis_named_exactly_all_classes",
                     statistics.fmean(1.0 if t.score == 1.0 else 0.0 for t in trials),
@@ -66,15 +68,19 @@ def measure() -> list[BenchRecord]:
         BenchRecord("diagnosis_score_mean", statistics.fmean(t.score for t in trials),
                     "fraction", NAMED_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_controls_without_id",
-                    statistics.fmean(0.0 if t.doc["effects"] else 1.0 for t in controls),
+                    statistics.fmean(0.0 if t.doc.get("effects", True) else 1.0
+                                     for t in controls),
                     "fraction", CONTROL_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_out_of_vocabulary_without_id",
-                    statistics.fmean(0.0 if t.doc["effects"] else 1.0 for t in unnamed),
+                    statistics.fmean(0.0 if t.doc.get("effects", True) else 1.0
+                                     for t in unnamed),
                     "fraction", UNNAMED_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_named_with_better_held_out_fit",
                     statistics.fmean(1.0 if t.doc["fit"]["after"] < t.doc["fit"]["before"]
                                      else 0.0 for t in named) if named else 1.0,
                     "fraction", 1.0, Goal.AT_LEAST),
+        BenchRecord("diagnosis_refused_characterizations", float(len(refused)), "trials", 0.0,
+                    Goal.AT_MOST),
         BenchRecord("diagnosis_time_max", max(t.diagnose_s for t in trials), "s",
                     TIME_TARGET_S, Goal.AT_MOST),
         BenchRecord("diagnosis_time_median", statistics.median(t.diagnose_s for t in trials),

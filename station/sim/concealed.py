@@ -37,6 +37,7 @@ import numpy as np
 
 from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind, Trims
+from station.errors import StationError
 from station.paths import HOME_ENV
 from station.physics.params import UnitParams, UnnamedEffect
 from station.recording import write_json_atomically
@@ -63,6 +64,8 @@ RANGE_MARGIN: Final = 0.8
 factor: the range a careful engineer would set after a first look."""
 
 NO_EFFECT: Final = "none"
+REFUSED: Final = "refused"
+"""Key of a trial's document when the diagnosis refused the recording (its reason)."""
 UNNAMED_PREFIX: Final = "unnamed:"
 
 
@@ -281,7 +284,12 @@ def run_trial(case: Case, root: Path) -> Trial:
     plan = plan_trial(case)
     record_trial(plan, out, truth)
     started = time.perf_counter()
-    doc = diagnose_recording(out, write_report=False).as_dict()
+    try:
+        doc = diagnose_recording(out, write_report=False).as_dict()
+    except StationError as exc:
+        # A characterization the diagnosis refuses is its failure, kept as data (the
+        # reason is what ``station diagnose`` would have printed), not a crashed run.
+        doc = {REFUSED: str(exc)}
     return Trial(case, doc, time.perf_counter() - started, plan.schedule.cycles * 1e-3,
                  plan.unit.load.value)
 
@@ -293,6 +301,8 @@ def named(doc: dict[str, Any]) -> list[tuple[str, list[str]]]:
 
 
 def score(cls: TrialClass, doc: dict[str, Any]) -> float:
+    if REFUSED in doc:
+        return 0.0
     found = named(doc)
     if cls.control:
         return 1.0 if not found else 0.0
@@ -313,6 +323,8 @@ def score(cls: TrialClass, doc: dict[str, Any]) -> float:
 def outcome(doc: dict[str, Any]) -> str:
     """The diagnosis as one confusion-matrix column: ``a|b`` for inseparable rivals,
     ``?`` for an unexplained residual."""
+    if REFUSED in doc:
+        return "refused"
     text = "+".join("|".join([e, *r]) for e, r in named(doc)) or NO_EFFECT
     if doc["unexplained"]["significant"]:
         text += "+?"
@@ -341,6 +353,9 @@ def confusion(trials: list[Trial]) -> str:
 
 def describe(trial: Trial) -> str:
     """One line per trial, for logs: class, seed, load, result, time."""
+    if REFUSED in trial.doc:
+        return (f"{trial.case.label:<48} {trial.load:<4} score 0.0 refused: "
+                f"{trial.doc[REFUSED][:160]}")
     fit = trial.doc["fit"]
     return (f"{trial.case.label:<48} {trial.load:<4} score {trial.score:.1f} "
             f"named {outcome(trial.doc):<40} χ² {fit['before_chi2']:.0f}→{fit['after_chi2']:.0f} "

@@ -25,7 +25,15 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
-from station.sim.concealed import CLASSES, TRIAL_SEED_FLOOR, Trial, cases, confusion, fresh_seeds
+from station.sim.concealed import (
+    CLASSES,
+    REFUSED,
+    TRIAL_SEED_FLOOR,
+    Trial,
+    cases,
+    confusion,
+    fresh_seeds,
+)
 from station.sim.concealed import run_trial as run
 
 SMOKE_SCORE = 0.5
@@ -46,20 +54,26 @@ def trials(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[Trial]]:
     print("\n" + confusion(result))
 
 
+@pytest.fixture(scope="module")
+def diagnosed(trials: list[Trial]) -> list[Trial]:
+    """The trials the diagnosis did not refuse (a refusal scores 0 in the score test)."""
+    return [t for t in trials if REFUSED not in t.doc]
+
+
 def test_concealed_effects_are_named_on_fresh_trials(trials: list[Trial]) -> None:
     assert statistics.fmean(t.score for t in trials) >= SMOKE_SCORE, confusion(trials)
 
 
-def test_a_clean_unit_is_given_no_effect(trials: list[Trial]) -> None:
-    for t in trials:
+def test_a_clean_unit_is_given_no_effect(diagnosed: list[Trial]) -> None:
+    for t in diagnosed:
         if t.case.cls.control:
             assert t.doc["effects"] == [], f"{t.case.label}: {json.dumps(t.doc['effects'])[:400]}"
 
 
 def test_the_extended_model_fits_held_out_data_better_whenever_it_names_an_effect(
-    trials: list[Trial],
+    diagnosed: list[Trial],
 ) -> None:
-    for t in trials:
+    for t in diagnosed:
         fit = t.doc["fit"]
         if t.doc["effects"]:
             assert fit["after"] < fit["before"], t.case.label
@@ -67,9 +81,9 @@ def test_the_extended_model_fits_held_out_data_better_whenever_it_names_an_effec
             assert fit["after"] == fit["before"], t.case.label
 
 
-def test_no_nominal_parameter_at_a_bound_is_reported_as_a_result(trials: list[Trial]) -> None:
+def test_no_nominal_parameter_at_a_bound_is_reported_as_a_result(diagnosed: list[Trial]) -> None:
     """A parameter pressed against its limit becomes a finding and a mismatch."""
-    for t in trials:
+    for t in diagnosed:
         doc = t.doc
         pushed = [name for name, state in doc["nominal"]["states"].items()
                   if state["state"] == "pushed_past_limit"]
@@ -89,9 +103,9 @@ def _keys(value: object) -> Iterator[str]:
 
 
 def test_every_named_effect_carries_evidence_and_parameters_with_sigma(
-    trials: list[Trial],
+    diagnosed: list[Trial],
 ) -> None:
-    for t in trials:
+    for t in diagnosed:
         for effect in t.doc["effects"]:
             assert effect["parameters"], t.case.label
             assert any("sigma" in key for key in _keys(effect["parameters"])), (t.case.label,
@@ -101,8 +115,8 @@ def test_every_named_effect_carries_evidence_and_parameters_with_sigma(
                 assert cells[0]["chi2_after"] < cells[0]["chi2_before"], (t.case.label, effect)
 
 
-def test_the_whole_schedule_is_used_or_its_skipping_explained(trials: list[Trial]) -> None:
-    for t in trials:
+def test_the_whole_schedule_is_used_or_its_skipping_explained(diagnosed: list[Trial]) -> None:
+    for t in diagnosed:
         doc = t.doc
         assert len(doc["conditions"]) >= 3, t.case.label
         for skipped in doc["skipped"]:
