@@ -343,15 +343,6 @@ class Diagnosis:
 
 
 # --------------------------------------------------------------------------- fitting
-def _with(model: Model, base: NDArray[np.float64], values: dict[str, list[float]]
-          ) -> NDArray[np.float64]:
-    p = base.copy()
-    for name, v in values.items():
-        if model.layout.has(name):
-            p[model.layout.slices[name]] = v
-    return p
-
-
 def _transplant(model: Model, base: Fit | None) -> NDArray[np.float64]:
     """The model's start, with every block a base fit shares taken from it."""
     p = model.layout.start()
@@ -376,11 +367,11 @@ def nominal_starts(model: Model) -> list[NDArray[np.float64]]:
         names = ("log_rotor_hz", "log_load_ratio", "log_belt_hz")
     # Well damped at first: a resonance a little misplaced then costs a little, where a
     # sharp one would rank a good grid point below every chain without a mode in band.
-    damped = _with(model, p0, {n: [GRID_DAMPING] for n in
+    damped = model.with_values(p0, {n: [GRID_DAMPING] for n in
                                ("rotor_damping_ratio", "belt_damping_ratio", "load_damping_ratio")})
     out = []
     for point in grid:
-        out.append(_with(model, damped, {n: [math.log(v)] for n, v in zip(names, point,
+        out.append(model.with_values(damped, {n: [math.log(v)] for n, v in zip(names, point,
                                                                             strict=True)}))
     return out
 
@@ -473,25 +464,27 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
     zeroed[model.layout.slices["load_angle_rad"]] = 0.0
     starts.append(zeroed)
     estimated = []
-    for effect in spec.effects - base.model.spec.effects:
+    added = spec.effects - base.model.spec.effects
+    bent = base.chi2 > REGRID_CHI2 * base.dof
+    for effect in added:
         maker = GROUP_STARTS.get(effect)
         if maker is not None:
-            starts += [_with(model, start, values) for values in maker(model, start)]
+            starts += [model.with_values(start, values) for values in maker(model, start)]
         estimate = GROUP_ESTIMATES.get(effect)
         if estimate is not None:
-            estimated += [_with(model, start, values) for values in estimate(model, start)]
-    if not base.model.spec.effects and base.chi2 > REGRID_CHI2 * base.dof:
+            estimated += [model.with_values(start, values) for values in estimate(model, start)]
+    if bent and not base.model.spec.effects:
         # The nominal bent its chain to hide what it lacks: the chain grid again, with the
         # new groups' linear parts solved at every point, finds the chain they leave
         # behind. Larger models start from the chain their best subset found.
         estimated += [x for _, x in screen(model, nominal_starts(model))[:REGRID_KEEP]]
     result = fit(model, starts, keep=2, estimated=estimated)
-    if free is not None and base.chi2 > REGRID_CHI2 * base.dof:
+    if bent and free is not None:
         # The unbent chain and load angles, with the new groups' linear parts solved: these
         # start worse than the bent ones, so they get their own run.
         unbent = _transplant(model, free)
-        again = fit(model, [unbent, *(_with(model, unbent, v) for e in spec.effects
-                                      - base.model.spec.effects if e in GROUP_STARTS
+        again = fit(model, [unbent, *(model.with_values(unbent, v) for e in added
+                                      if e in GROUP_STARTS
                                       for v in GROUP_STARTS[e](model, unbent))], keep=2)
         if again.chi2 < result.chi2:
             result = again

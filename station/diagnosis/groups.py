@@ -122,12 +122,7 @@ def _estimate_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
         for phase in (peak["clock_phase"][0] + np.arange(CLOCK_PHASES) / CLOCK_PHASES) % 1.0
         for delay in (a1, max(0.0, a1 - half))
     ]
-    starts = []
-    for values in tried:
-        x = p.copy()
-        for name, value in values.items():
-            x[model.layout.slices[name]] = value
-        starts.append(x)
+    starts = [model.with_values(p, values) for values in tried]
     return [{name: [float(v) for v in x[model.layout.slices[name]]]
              for name in ("clock_drift_ppm", "clock_phase", "sensor_a1_ms")}
             for _, x in screen(model, starts)[:2]]

@@ -378,6 +378,15 @@ class Model:
             self.synth_beyond = np.exp(1j * np.outer(kb, x))
 
     # ------------------------------------------------------------------ pieces
+    def with_values(self, p: NDArray[np.float64], values: dict[str, list[float]]
+                    ) -> NDArray[np.float64]:
+        """A copy of ``p`` with the named blocks set (names this model lacks are ignored)."""
+        out = p.copy()
+        for name, v in values.items():
+            if self.layout.has(name):
+                out[self.layout.slices[name]] = v
+        return out
+
     def _p(self, p: NDArray[np.float64], name: str) -> NDArray[np.float64]:
         return p[self.layout.slices[name]]
 

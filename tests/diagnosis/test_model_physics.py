@@ -16,7 +16,7 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from station.core import Effect
-from station.diagnosis.diagnose import _transplant, _with, fit_nominal
+from station.diagnosis.diagnose import _transplant, fit_nominal
 from station.diagnosis.fit import fit
 from station.diagnosis.groups import GROUP_ESTIMATES
 from station.diagnosis.model import Model, ModelSpec
@@ -84,7 +84,7 @@ def test_a_drifting_sensor_clock_is_found_from_the_recording_alone() -> None:
         model = Model(replace(nominal.model.spec,
                               effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})), nominal.model.obs)
         start = _transplant(model, nominal)
-        starts = [_with(model, start, values)
+        starts = [model.with_values(start, values)
                   for values in GROUP_ESTIMATES[Effect.SENSOR_CLOCK_DRIFT](model, start)]
         result = fit(model, starts, keep=len(starts))
     assert result.scalar("clock_drift_ppm") == pytest.approx(truth, abs=5.0)
