@@ -251,9 +251,16 @@ def _fit_parabola(x: NDArray[np.float64], y: NDArray[np.float64], sigma: NDArray
     u = x - centre
     design = np.column_stack([np.ones_like(u), u, u * u])
     w = 1.0 / sigma**2
-    normal = design.T @ (design * w[:, None])
-    cov = np.linalg.inv(normal)
-    coef = cov @ (design.T @ (w * y))
+    # Weights span many decades (|H|² near the null against the sweep's ends), so the
+    # normal equations lose the curvature's variance to rounding; a column-scaled QR of
+    # the whitened design keeps the covariance R⁻¹R⁻ᵀ positive by construction.
+    whitened = design / sigma[:, None]
+    scale = np.linalg.norm(whitened, axis=0)
+    scale[scale == 0.0] = 1.0
+    q, r = np.linalg.qr(whitened / scale)
+    r_inv = np.linalg.inv(r) / scale[:, None]
+    cov = r_inv @ r_inv.T
+    coef = r_inv @ (q.T @ (y / sigma))
     residual = y - design @ coef
     quality = _quality(residual, sigma, y, w, params=3, available=available)
     return _Parabola(coef, np.asarray(cov, dtype=np.float64), centre, quality)
@@ -274,23 +281,34 @@ def _power(points: Sequence[TrimPoint], order: int) -> tuple[NDArray[np.float64]
 def _nearest_windows(
     x: NDArray[np.float64], fit: Callable[[NDArray[np.intp]], _Parabola], minimum: int
 ) -> tuple[NDArray[np.intp], _Parabola, bool]:
-    """Largest window of points nearest the vertex that a parabola explains."""
+    """Largest window of points nearest the vertex that a parabola explains.
+
+    Windows grow by distinct trim values, every repeat of a value kept together, and
+    hold at least three values and ``minimum`` points: a sweep that returns to its
+    nominal point between steps has many points at one value, and the points nearest
+    the vertex could then hold only two values, which determine no parabola.
+    """
+    values = np.unique(x)
     order = np.arange(x.size)
     current = fit(order)
     chosen, accepted = order, consistent_with_noise(current.quality)
+
+    def window(n: int) -> NDArray[np.intp]:
+        nearest = values[np.argsort(np.abs(values - current.vertex), kind="stable")[:n]]
+        return np.flatnonzero(np.isin(x, nearest))
+
     for _ in range(_MAX_REFITS):
         if current.coef[2] <= 0:
             break
-        by_distance = np.argsort(np.abs(x - current.vertex), kind="stable")
+        windows = [w for w in map(window, range(values.size, 2, -1)) if w.size >= minimum]
         pick: tuple[NDArray[np.intp], _Parabola, bool] | None = None
-        for n in range(x.size, minimum - 1, -1):
-            idx = np.sort(by_distance[:n])
+        for idx in windows:
             candidate = fit(idx)
             if candidate.coef[2] > 0 and consistent_with_noise(candidate.quality):
                 pick = (idx, candidate, True)
                 break
         if pick is None:
-            idx = np.sort(by_distance[:minimum])
+            idx = windows[-1] if windows else order
             pick = (idx, fit(idx), False)
         if np.array_equal(pick[0], chosen):
             current, accepted = pick[1], pick[2]
@@ -314,7 +332,7 @@ def fit_parabola(points: Sequence[TrimPoint], axis: TrimAxis) -> tuple[ParabolaF
     def fit(idx: NDArray[np.intp]) -> _Parabola:
         return _fit_parabola(x[idx], y[idx], sigma[idx], x.size)
 
-    minimum = min(x.size, 5 if distinct >= 5 else distinct)
+    minimum = min(x.size, 5)  # points in the smallest window (of three values or more)
     idx, best, accepted = _nearest_windows(x, fit, minimum)
     warnings: list[str] = []
     variance = float(best.cov[2, 2])

@@ -807,14 +807,19 @@ def unexplained_of(model: Candidate) -> Unexplained:
 
 def _explained_cells(before: Candidate, after: Candidate
                      ) -> tuple[tuple[ConditionKey, int, float, float], ...]:
-    """The located cells of ``before``'s held-out residual, with ``after``'s χ² there."""
+    """The located cells of ``before``'s held-out residual that ``after`` lowers, best first.
+
+    A cell the larger model leaves as bad or worse is not evidence for it, so it is
+    not listed (the effect may still win overall by many small cells).
+    """
     b, dof = chi2_map(before.fit, before.held.residuals)
     a, _ = chi2_map(after.fit, after.held.residuals)
     conditions = before.fit.model.obs.conditions
     cells = []
     for c, key in enumerate(conditions):
         for k in range(b.shape[1]):
-            if _confidence(float(b[c, k]), int(dof[c])) >= SIGNIFICANT_CONFIDENCE:
+            if (_confidence(float(b[c, k]), int(dof[c])) >= SIGNIFICANT_CONFIDENCE
+                    and a[c, k] < b[c, k]):
                 cells.append((key, k + 1, float(b[c, k]), float(a[c, k])))
     cells.sort(key=lambda cell: cell[2] - cell[3], reverse=True)
     return tuple(cells[:12])

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -256,3 +257,24 @@ def test_a_minimum_outside_the_swept_range_is_refused() -> None:
     design = cross_design(offsets=np.linspace(0.0, 500.0, 11))
     with pytest.raises(Unsupported, match=r"offset_a_mA: the minimum -1\d\d\.\d lies outside"):
         fit_parabola(points(design, seed=0), TrimAxis.OFFSET_A)
+
+
+def test_a_sweep_that_returns_to_nominal_still_determines_its_parabola() -> None:
+    """Calibration schedules revisit the nominal trims, and a real unit is not quite the
+    same at each visit. When the minimum lies beside nominal, the points nearest it are
+    mostly those repeats, which no parabola fits within their noise; the smallest
+    window must still hold three distinct values (it once held two: a singular fit)."""
+    vertex = -250.0
+    design = [np.array([0.0, 0.0, s]) for s in SPLITS] + [np.zeros(3)] * 3
+
+    def response(u: NDArray[np.float64]) -> tuple[complex, complex]:
+        return 0j, complex(J2[2] * (u[2] - vertex)) + 1e-3
+
+    pts = points(design, seed=4, response=response, noise_var=NOISE_VAR / 1e4)
+    visits = [i for i, u in enumerate(design) if u[2] == 0.0]
+    for i, drift in zip(visits, (1.0, 1.05, 0.95, 1.08), strict=True):
+        pts[i] = replace(pts[i], h2=pts[i].h2 * drift)
+    fit, warnings = fit_parabola(pts, TrimAxis.GAIN_SPLIT)
+    assert len(set(np.asarray(fit.x)[np.asarray(fit.used)])) >= 3
+    assert abs(fit.vertex - vertex) < 30.0, fit.vertex
+    assert any("fit worse than the noise" in w for w in warnings), warnings

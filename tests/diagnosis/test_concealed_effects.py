@@ -1,13 +1,15 @@
 """The issue's acceptance test: name concealed effects on trials nobody tuned on.
 
 Every class of ``station.sim.concealed`` (a clean unit, each vocabulary id,
-two-effect combinations, physics no id describes) is drawn once on a fresh
-seed above ``TRIAL_SEED_FLOOR``: a disk or belt unit over wide ranges, a
-characterization schedule as someone else might write it, recorded in
-process, its truth in a folder the diagnosis never reads, and diagnosed from
-the recording alone exactly as ``station diagnose`` does. The seeds are new
-on every run; a failure prints each trial's label with its seed, which
-reproduces it (``Case(cls, seed)``).
+two-effect combinations, physics no id describes) is drawn once on a seed
+above ``TRIAL_SEED_FLOOR``, where nobody developed: a disk or belt unit over
+wide ranges, a characterization schedule as someone else might write it,
+recorded in process, its truth in a folder the diagnosis never reads, and
+diagnosed from the recording alone exactly as ``station diagnose`` does. The
+seeds are fixed so that the suite is repeatable: each is derived from its
+class's label, never picked by looking at a result; ``STATION_FRESH_TRIALS=1``
+draws new ones, as the benchmark always does. A failure prints each trial's
+label with its seed, which reproduces it (``Case(cls, seed)``).
 
 One trial per class is a smoke-sized sample, so the score threshold here is
 looser than the benchmark's (``bench/run diagnosis``: eight per class and the
@@ -19,7 +21,9 @@ what must hold on every trial is held on every trial.
 from __future__ import annotations
 
 import json
+import os
 import statistics
+import zlib
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 
@@ -43,10 +47,16 @@ the issue's 90 % per class is the benchmark's target, where it is measured on ei
 trials per class and reported, met or not."""
 
 
+def _seeds() -> list[int]:
+    if os.environ.get("STATION_FRESH_TRIALS") == "1":
+        return fresh_seeds(len(CLASSES))
+    return [TRIAL_SEED_FLOOR + zlib.crc32(cls.label.encode()) % 10**8 for cls in CLASSES]
+
+
 @pytest.fixture(scope="module")
 def trials(tmp_path_factory: pytest.TempPathFactory) -> Iterator[list[Trial]]:
     root = tmp_path_factory.mktemp("concealed")
-    drawn = cases(CLASSES, 1, fresh_seeds(len(CLASSES)))
+    drawn = cases(CLASSES, 1, _seeds())
     assert all(case.seed >= TRIAL_SEED_FLOOR for case in drawn)
     with ProcessPoolExecutor(max_workers=2) as pool:
         result = list(pool.map(run, drawn, [root] * len(drawn)))
