@@ -19,8 +19,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 DEFAULT_ORDERS = 8
-"""Orders fitted jointly; more orders keep the others from leaking into 1 and 2
-through the holes lost samples leave."""
+"""Orders reported by default."""
+
+JOINT_ORDERS = 16
+"""Orders fitted jointly whatever is reported (as far as the sampling resolves them).
+A rough unit near a mode carries strong tonal ripple up to order 10 and beyond: left
+out of the fit, it is counted as noise (inflating every variance tenfold) and leaks
+into orders 1 and 2 through the holes lost and clipped samples leave."""
 
 _MIN_PERIODS_FOR_SCATTER = 4
 _RAYLEIGH_Z = 9.0
@@ -86,7 +91,8 @@ def demodulate(
     *,
     orders: int = DEFAULT_ORDERS,
 ) -> Harmonics:
-    """Least-squares phasors of orders 1..``orders`` referenced to ``angle``.
+    """Least-squares phasors of orders 1..``orders`` referenced to ``angle``, fitted
+    jointly with the orders up to ``JOINT_ORDERS``.
 
     ``signal`` holds NaN where a sample is missing or saturated. Orders at or
     above the Nyquist rate of the sampling are not fitted (they would alias).
@@ -94,7 +100,8 @@ def demodulate(
     if signal.shape != angle.shape or signal.ndim != 1:
         raise ValueError(f"signal {signal.shape} and angle {angle.shape} must match (1-D)")
     nyquist = math.floor((samples_per_period - 1e-9) / 2)
-    fitted = max(1, min(orders, nyquist))
+    fitted = max(1, min(max(orders, JOINT_ORDERS), nyquist))
+    kept = min(orders, fitted)
     ok = ~np.isnan(signal)
     used = int(ok.sum())
     x = _design(angle[ok], fitted)
@@ -105,12 +112,12 @@ def demodulate(
     residual = y - x @ coef
     a, b = coef[1 : fitted + 1], coef[fitted + 1 :]
     phasors = np.full(orders, np.nan + 0j, dtype=np.complex128)
-    phasors[:fitted] = a - 1j * b
+    phasors[:kept] = (a - 1j * b)[:kept]
     dof = used - x.shape[1]
     sigma2 = float(residual @ residual) / dof
     white = np.diag(np.linalg.inv(x.T @ x))
     unit = np.full(orders, np.nan)
-    unit[:fitted] = white[1 : fitted + 1] + white[fitted + 1 :]
+    unit[:kept] = (white[1 : fitted + 1] + white[fitted + 1 :])[:kept]
     variance = sigma2 * unit
     periods = int(signal.size // samples_per_period)
     if periods >= _MIN_PERIODS_FOR_SCATTER:
@@ -118,9 +125,9 @@ def demodulate(
         # period's phasor; the segment's phasor averages `periods` of them.
         r = np.zeros(signal.size)
         r[ok] = residual
-        z = period_phasors(r, ok, angle, samples_per_period, range(1, fitted + 1))
+        z = period_phasors(r, ok, angle, samples_per_period, range(1, kept + 1))
         scatter = np.sum(np.abs(z) ** 2, axis=0) / (periods * (periods - 1))
-        variance[:fitted] = np.maximum(variance[:fitted], scatter)
+        variance[:kept] = np.maximum(variance[:kept], scatter)
     return Harmonics(
         phasors=phasors,
         variance=variance,
