@@ -27,6 +27,7 @@ import os
 import re
 import socket
 import sqlite3
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass, fields
@@ -755,8 +756,7 @@ class Store:
                     f"({newest}); refusing it, install the newer station software",
                     None,
                 )
-            # WAL: QA reads while a station writes, and a killed station leaves the file whole.
-            mode = str(conn.execute("PRAGMA journal_mode = WAL").fetchone()[0])
+            mode = _switch_to_wal(conn)
         except sqlite3.Error as exc:
             raise self._open_error(exc) from exc
         if mode.lower() != "wal":
@@ -837,6 +837,26 @@ class Store:
 
 
 # -- rows <-> dataclasses ---------------------------------------------------------
+
+
+def _switch_to_wal(conn: sqlite3.Connection) -> str:
+    """Ask for the write-ahead log; return the journal mode SQLite settled on.
+
+    WAL: QA reads while a station writes, and a killed station leaves the file whole.
+    Switching needs the file to itself, and SQLite reports "locked" at once instead
+    of waiting when another station is opening the same new file at that instant, so
+    the switch is retried for as long as any other statement would wait.
+    """
+    deadline = time.monotonic() + BUSY_TIMEOUT_MS / 1000
+    while True:
+        try:
+            return str(conn.execute("PRAGMA journal_mode = WAL").fetchone()[0])
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) and "busy" not in str(exc):
+                raise
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
 
 
 def _user_version(conn: sqlite3.Connection) -> int:

@@ -211,12 +211,14 @@ def diagnosis_view(doc: dict[str, Any]) -> Group:
     for column in ("where", "χ²/dof", "confidence"):
         located.add_column(column)
     # What no id explains comes first: it is what the engineer must look at.
-    for loc in sorted(doc["located"], key=lambda item: item["kind"] != "unexplained")[:10]:
+    for loc in sorted(doc["located"], key=lambda item: item["kind"] == "harmonic")[:10]:
         if "order" in loc:
             where = (f"order {loc['order']} at {loc['amplitude_mA']} mA, "
                      f"{loc['electrical_hz']:+.1f} Hz")
             if loc["kind"] == "unexplained":
                 where += " (left unexplained)"
+            elif loc["kind"] == "sensor_axis":
+                where += f" (on the sensor's {loc['axis']} axis)"
         else:
             where = f"{loc['parameter']} drifts ({loc['trend']})"
         located.add_row(where, f"{loc['chi2'] / max(loc['dof'], 1):.1f}",

@@ -63,6 +63,8 @@ def segment_delays(model: Model, p: NDArray[np.float64]
 
 CLOCK_RATES_PPM = np.arange(-3000.0, 3000.5, 1.0)
 """Drift rates scanned by the periodogram (a sawtooth of N samples resolves 1/N)."""
+CLOCK_REFINE_PPM = np.linspace(-1.0, 1.0, 81)
+"""Offsets about a peak of the scan where it is refined."""
 
 
 def _starts_clock(model: Model, p: NDArray[np.float64], peaks: int = 3) -> list[Starts]:
@@ -77,16 +79,27 @@ def _starts_clock(model: Model, p: NDArray[np.float64], peaks: int = 3) -> list[
     t = model.obs.metadata.sync_period_s
     n = model.obs.span.mean(axis=1)
     if model.layout.has("clock_phase"):
-        z = weight[:, None] * np.exp(2j * np.pi * (delay[:, None] / t
-                                                   + n[:, None] * CLOCK_RATES_PPM[None, :] * 1e-6))
-        power = np.abs(z.sum(axis=0))
+        def sums(rates: NDArray[np.float64]) -> NDArray[np.complex128]:
+            z = weight[:, None] * np.exp(2j * np.pi * (delay[:, None] / t
+                                                       + n[:, None] * rates[None, :] * 1e-6))
+            return np.asarray(z.sum(axis=0), dtype=np.complex128)
+
+        power = np.abs(sums(CLOCK_RATES_PPM))
         out: list[Starts] = []
-        for index in np.argsort(power)[::-1][:200]:
+        for index in np.argsort(power)[::-1][:2000]:
             rate = float(CLOCK_RATES_PPM[index])
             if any(abs(rate - s["clock_drift_ppm"][0]) < 20.0 for s in out):
                 continue
-            phase = float(np.angle(z[:, index].sum()) / (2 * np.pi)) % 1.0
-            out.append({"clock_drift_ppm": [rate], "clock_phase": [phase]})
+            # The scan's step is about the basin's width for a long recording (the last
+            # sample moves by N·δ periods): the peak is refined before it is a start.
+            fine = rate + CLOCK_REFINE_PPM
+            total = sums(fine)
+            best = int(np.argmax(np.abs(total)))
+            # The sum's angle is the phase at the first SYNC; the model counts it from the
+            # recording's middle.
+            phase = float(np.angle(total[best]) / (2 * np.pi)
+                          - model.clock_middle * fine[best] * 1e-6) % 1.0
+            out.append({"clock_drift_ppm": [float(fine[best])], "clock_phase": [phase]})
             if len(out) == peaks:
                 break
         return out
@@ -97,20 +110,28 @@ def _starts_clock(model: Model, p: NDArray[np.float64], peaks: int = 3) -> list[
 MIN_CLOCK_PPM = 5.0
 """A periodogram peak nearer no drift than this is the constant delay the base model has."""
 
-CLOCK_PEAKS = 8
+CLOCK_PEAKS = 12
 """Periodogram peaks screened: segments spaced alike alias the true rate, and their
-delays are noisy, so the true rate need not be the highest peak."""
+delays are noisy, so the true rate need not be the highest peak (a development trial
+had it ninth, behind the schedule's own rhythm at ±1390 and ±2780 ppm)."""
 
-CLOCK_PHASES = 12
+CLOCK_PHASES = 8
 """Sawtooth phases tried at the periodogram's rate: the phase sets where the delays wrap,
-and a fit started half a period off settles in a wrong basin."""
+and a fit started half a period off settles in a wrong basin (from the true rate, starts
+within about ±0.15 of a period converged)."""
+
+
+CLOCK_KEEP = 4
+"""Screened clock starts that are fitted, each the best phase of its rate and delay: the
+basin of the true sawtooth is narrow in phase and sensor delay together."""
 
 
 def _estimate_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
     """At each of the periodogram's peaks: the sawtooth's phase over a grid, with the
     sensor's delay as it is and less the sawtooth's mean (half a period, which the base
-    model had folded into it); the two that fit best once the linear parameters are
-    solved. A peak at no drift is the base model again and is passed over."""
+    model had folded into it); the ``CLOCK_KEEP`` that fit best once the linear
+    parameters are solved. A peak at no drift is the base model again and is passed
+    over."""
     peaks = _starts_clock(model, p, CLOCK_PEAKS)
     if not model.layout.has("clock_phase"):
         return peaks
@@ -123,9 +144,16 @@ def _estimate_clock(model: Model, p: NDArray[np.float64]) -> list[Starts]:
         for delay in (a1, max(0.0, a1 - half))
     ]
     starts = [model.with_values(p, values) for values in tried]
-    return [{name: [float(v) for v in x[model.layout.slices[name]]]
-             for name in ("clock_drift_ppm", "clock_phase", "sensor_a1_ms")}
-            for _, x in screen(model, starts)[:2]]
+    out: dict[tuple[float, float], Starts] = {}
+    for _, x in screen(model, starts):
+        values = {name: [float(v) for v in x[model.layout.slices[name]]]
+                  for name in ("clock_drift_ppm", "clock_phase", "sensor_a1_ms")}
+        # The best phase of each rate and delay: the delay and the phase trade against
+        # each other, and the better basin is often the one the screen ranks second.
+        out.setdefault((values["clock_drift_ppm"][0], values["sensor_a1_ms"][0]), values)
+        if len(out) == CLOCK_KEEP:
+            break
+    return list(out.values())
 
 
 GROUP_ESTIMATES: dict[Effect, Callable[[Model, NDArray[np.float64]], list[Starts]]] = {
@@ -262,7 +290,9 @@ def _clock(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
                                              if fit.model.spec.clock_wraps
                                              else "sample times drift without wrapping")}
     if fit.model.layout.has("clock_phase"):
-        out["sample_phase"] = float(fit.scalar("clock_phase")) % 1.0
+        # Reported at the first SYNC, where a reader of the recording would count it from.
+        at_start = fit.scalar("clock_phase") + fit.model.clock_middle * value * 1e-6
+        out["sample_phase"] = float(at_start) % 1.0
     return out
 
 

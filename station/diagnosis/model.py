@@ -145,6 +145,9 @@ class ModelSpec:
     # Whether each segment's mean torque must balance its drag. Without it the load angles
     # are free nuisances: a start that nothing unmodelled can bend.
     dc_balance: bool = True
+    # The sensor's transfer bends (a + c2·a²/FS + c3·a³/FS²): physics no id describes,
+    # modelled so that it can be told from the ids it would otherwise be taken for.
+    sensor_bend: bool = False
 
     def with_effect(self, effect: Effect) -> ModelSpec:
         return replace(self, effects=self.effects | {effect})
@@ -153,7 +156,8 @@ class ModelSpec:
         return replace(self, effects=self.effects - {effect})
 
     def label(self) -> str:
-        return " + ".join(sorted(e.value for e in self.effects)) or "nominal"
+        named = " + ".join(sorted(e.value for e in self.effects)) or "nominal"
+        return named + (" + sensor bend (no id)" if self.sensor_bend else "")
 
 
 def chain_for(gear_ratio: float) -> ChainKind:
@@ -191,7 +195,45 @@ def layout_for(spec: ModelSpec, obs: Observations) -> Layout:
     for effect in sorted(spec.effects):
         for block in GROUP_BLOCKS[effect](spec, obs):
             lay.add(block)
+    if spec.sensor_bend:
+        # c2, c3 as fractions of the full scale: the worst deviation of a MEMS element's
+        # transfer is a few per cent; a third of the range is no longer a sensor.
+        lay.add(Block("sensor_bend", 2, 0.0, -BEND_LIMIT, BEND_LIMIT))
     return lay
+
+
+BEND_LIMIT = 0.3
+"""Largest |c2|, |c3| of a sensor transfer the model allows (fractions of full scale)."""
+
+BEND_GRID = 128
+"""Points per electrical period where the bend's products are formed: the cube of order
+16 reaches order 48, which a grid of 128 resolves without folding."""
+
+
+def clock_middle(obs: Observations) -> float:
+    """The sample number (from the first SYNC) the clock's phase is counted from."""
+    return 0.5 * (float(obs.span[0, 0]) + float(obs.span[-1, 1]))
+
+
+def bend_bases(obs: Observations) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """Harmonics of m²/FS and m³/FS² per segment, m the measured tangential waveform
+    (its mean and every demodulated order), orders 1..K then the orders beyond.
+
+    A sensor reading m = a + c2·a²/FS + c3·a³/FS² is undone to first order in c by
+    a = m − c2·m²/FS − c3·m³/FS²: the products of the measurement itself, fixed by the
+    data, so the bend enters the model linearly.
+    """
+    phasors = obs.phasors if obs.beyond is None else np.hstack([obs.phasors, obs.beyond])
+    k = np.arange(1, phasors.shape[1] + 1, dtype=np.float64)
+    x = 2.0 * np.pi * np.arange(BEND_GRID) / BEND_GRID
+    synth = np.exp(1j * np.outer(k, x))
+    dc = np.zeros(obs.count) if obs.dc is None else obs.dc
+    wave = dc[:, None] + (phasors @ synth).real
+    full_scale = obs.metadata.sensor_lsb_mps2 * 32768.0
+    analyse = 2.0 / BEND_GRID * np.exp(-1j * np.outer(x, k))
+    square = (wave**2 / full_scale) @ analyse
+    cube = (wave**3 / full_scale**2) @ analyse
+    return np.asarray(square, dtype=np.complex128), np.asarray(cube, dtype=np.complex128)
 
 
 GroupBlocks = Callable[[ModelSpec, Observations], list[Block]]
@@ -365,7 +407,9 @@ class Model:
         self.current_orders = np.array([1, *DISTORTION_ORDERS], dtype=np.float64)
         self.current_synth = np.exp(1j * np.outer(self.current_orders, x))  # (H, N)
         self.load_speed = obs.load_speed[:, None]  # rad/s at the load
+        self.bend = bend_bases(obs) if spec.sensor_bend else None
         self._clock_n = self._clock_samples()
+        self.clock_middle = clock_middle(obs)
         self._last: tuple[NDArray[np.float64], Motion] | None = None
         # The measured orders above K: part of the swing, never of the residual.
         beyond = obs.beyond if obs.beyond is not None and obs.beyond.size else None
@@ -476,17 +520,21 @@ class Model:
         """
         t = self.obs.metadata.sync_period_s
         drift = self._scalar(p, "clock_drift_ppm") * 1e-6
-        n = self._clock_n
+        # Counted from the recording's middle: there a change of rate moves no sample, so
+        # rate and phase are nearly independent and the fit can walk the narrow valley.
+        n = self._clock_n - self.clock_middle
         if self.spec.clock_wraps:
             phase = self._scalar(p, "clock_phase")
             return np.asarray(t * np.mod(phase - n * drift, 1.0), dtype=np.float64)
-        middle = 0.5 * (float(self.obs.span[0, 0]) + float(self.obs.span[-1, 1]))
-        return np.asarray(-t * (n - middle) * drift, dtype=np.float64)
+        return np.asarray(-t * n * drift, dtype=np.float64)
 
     def clock_factor(self, p: NDArray[np.float64], k: NDArray[np.float64] | None = None
                      ) -> NDArray[np.complex128]:
-        delay = self.sample_delay(p)  # (S, M)
+        """The mean of e^{-jkωd} over each segment's samples, d their delays, (S, K)."""
         k = self.k if k is None else k
+        if self.spec.clock_wraps:
+            return self._sawtooth_factor(p, k)
+        delay = self.sample_delay(p)  # (S, M)
         # e^{-jkωd} as powers of e^{-jωd}: one exponential per sample instead of one per order.
         z = np.exp(-1j * self.obs.omega[:, None] * delay)
         top = int(k.max())
@@ -494,6 +542,42 @@ class Model:
                             axis=1)
         phase = powers[:, k.astype(np.intp) - 1, :]
         out: NDArray[np.complex128] = phase.mean(axis=2)
+        return out
+
+    def _sawtooth_factor(self, p: NDArray[np.float64], k: NDArray[np.float64]
+                         ) -> NDArray[np.complex128]:
+        """``clock_factor`` for a wrapping clock, integrated exactly.
+
+        With u = φ − nδ the delay is T·frac(u), so the segment's mean of f(u) =
+        e^{-ja·frac(u)} (a = kωT) is [F(u₀) − F(u₁)]/(u₀ − u₁) with F(u) = ⌊u⌋·G(1) +
+        G(frac u), G(v) = (1 − e^{-jav})/(ja). A sum over sample points instead jumps
+        whenever a wrap crosses one of them, and the fit then stalls on the steps.
+        """
+        t = self.obs.metadata.sync_period_s
+        drift = self._scalar(p, "clock_drift_ppm") * 1e-6
+        phase = self._scalar(p, "clock_phase")
+        span = self.obs.span.astype(np.float64) - self.clock_middle
+        u0 = phase - span[:, 0] * drift  # (S,)
+        u1 = phase - span[:, 1] * drift
+        a = k[None, :] * self.obs.omega[:, None] * t  # (S, K)
+        small = np.abs(a) < 1e-9
+        ja = np.where(small, 1.0, 1j * a)
+
+        def g(v: NDArray[np.float64]) -> NDArray[np.complex128]:
+            out: NDArray[np.complex128] = np.where(small, v, (1.0 - np.exp(-ja * v)) / ja)
+            return out
+
+        def big_f(u: NDArray[np.float64]) -> NDArray[np.complex128]:
+            whole = np.floor(u)[:, None]
+            part = np.broadcast_to((u - np.floor(u))[:, None], a.shape)
+            out: NDArray[np.complex128] = whole * g(np.ones_like(a)) + g(part)
+            return out
+
+        width = (u0 - u1)[:, None]
+        if abs(drift) * float(np.min(span[:, 1] - span[:, 0])) < 1e-9:
+            still: NDArray[np.complex128] = np.exp(-1j * a * np.mod(0.5 * (u0 + u1), 1.0)[:, None])
+            return still
+        out: NDArray[np.complex128] = (big_f(u0) - big_f(u1)) / width
         return out
 
     def _current_lag(self, p: NDArray[np.float64]) -> tuple[NDArray[np.complex128],
@@ -649,16 +733,31 @@ class Model:
         self._last = (p.copy(), out)
         return out
 
+    def measured(self, p: NDArray[np.float64]) -> tuple[NDArray[np.complex128],
+                                                        NDArray[np.complex128] | None]:
+        """The tangential harmonics as the fixture made them, orders 1..K and beyond:
+        the recording's own, with the sensor's bend undone when the model has one."""
+        below, above = self.obs.phasors, self.beyond
+        if self.bend is not None:
+            c2, c3 = self._p(p, "sensor_bend")
+            undo = c2 * self.bend[0] + c3 * self.bend[1]
+            k = self.obs.orders
+            below = below - undo[:, :k]
+            if above is not None:
+                above = above - undo[:, k:]
+        return below, above
+
     def _motion(self, p: NDArray[np.float64]) -> Motion:
         sensor = self.sensor_response(p)
-        alpha = self.obs.phasors / (sensor * self.radius)
+        below, beyond = self.measured(p)
+        alpha = below / (sensor * self.radius)
         stages = self.stages(p)
         transfer = self.transfer(stages)
         force, slope, _ = self.friction_torque(p, alpha)
         theta = transfer.a * alpha + transfer.b * force
         ripple = (theta @ self.synth).real  # rotor angle ripple on the grid (mech. rad)
-        if self.beyond is not None:
-            above = self.beyond / (self.sensor_response(p, beyond=True) * self.radius)
+        if beyond is not None:
+            above = beyond / (self.sensor_response(p, beyond=True) * self.radius)
             swing = self.transfer(stages, self.jw_beyond).a * above
             ripple = ripple + (swing @ self.synth_beyond).real
         rho = self._p(p, "load_angle_rad")[self.obs.condition]

@@ -20,20 +20,20 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from station.analysis.harmonics import Harmonics
+from station.analysis.harmonics import JOINT_ORDERS, Harmonics, demodulate
 from station.analysis.pipeline import AnalysisOptions, Measured, group_conditions, measure
 from station.analysis.segments import Rejected, Segment, SettleFallback, Settling
 from station.analysis.timeline import Timeline
+from station.core import Axis
 from station.errors import InputError
 from station.recording import RecordingMetadata
 
 DIAGNOSIS_ORDERS = 8
 """Harmonic orders of the electrical frequency that a diagnosis models and maps."""
 
-DEMODULATED_ORDERS = 16
-"""Orders fitted when demodulating (as far as the sampling allows): a rough unit swings
-far enough to put energy above order 8, and left in the residual it would both inflate
-the noise estimate and, where samples are missing, leak into the orders kept."""
+DEMODULATED_ORDERS = JOINT_ORDERS
+"""Orders kept from each demodulation (as far as the sampling allows): a rough unit
+swings far enough to put energy above order 8, and the swing is part of the motion."""
 
 BEYOND_NYQUIST = 0.4
 """Orders above the modelled ones enter the motion only below this fraction of the
@@ -106,6 +106,19 @@ class Skipped:
 
 
 @dataclass(frozen=True)
+class OtherAxis:
+    """One of the sensor's two axes besides the tangential one, demodulated like it.
+
+    ICD.md names only the tangential axis; the others are radial and axial in some
+    order, and a check of the element's alignment must not need to know which.
+    """
+
+    axis: Axis
+    phasors: NDArray[np.complex128]  # (S, K) m/s², same reference as the tangential ones
+    sigma: NDArray[np.float64]  # (S, K)
+
+
+@dataclass(frozen=True)
 class Observations:
     """Per-segment arrays (S segments, K orders) and the conditions they belong to.
 
@@ -135,6 +148,8 @@ class Observations:
     # (S, E) measured harmonics of orders K+1 … K+E: not modelled, but part of the motion
     # the torque is evaluated on (zero where an order lies beyond what the sampling shows)
     beyond: NDArray[np.complex128] | None = None
+    other_axes: tuple[OtherAxis, ...] = ()
+    dc: NDArray[np.float64] | None = None  # (S,) mean tangential acceleration, m/s²
 
     @property
     def orders(self) -> int:
@@ -182,6 +197,9 @@ class Observations:
             segments=tuple(s for s, k in zip(self.segments, keep, strict=True) if k),
             skipped=self.skipped,
             beyond=None if self.beyond is None else self.beyond[keep],
+            other_axes=tuple(replace(a, phasors=a.phasors[keep], sigma=a.sigma[keep])
+                             for a in self.other_axes),
+            dc=None if self.dc is None else self.dc[keep],
         )
 
 
@@ -280,7 +298,42 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
         segments=tuple(segs),
         skipped=tuple(skipped),
         beyond=_beyond(harmonics, orders, omega, period),
+        other_axes=_other_axes(timeline, segs, orders),
+        dc=np.array([h.dc for h in harmonics]),
     )
+
+
+def _other_axes(timeline: Timeline, segments: list[Segment], orders: int
+                ) -> tuple[OtherAxis, ...]:
+    """The two non-tangential axes' harmonics over the same segments and samples.
+
+    Each window is first rid of a slow quadratic: on a fixture whose shaft is not
+    vertical an axis reads gravity turning once per revolution, a drift that would
+    otherwise leak into every order.
+    """
+    meta = timeline.metadata
+    ok = timeline.sensor_valid & ~timeline.saturated
+    out = []
+    for axis in Axis:
+        if axis is meta.tangential_axis:
+            continue
+        signal = timeline.accel_counts[:, axis.column] * meta.sensor_lsb_mps2
+        phasors = np.zeros((len(segments), orders), dtype=np.complex128)
+        sigma = np.full((len(segments), orders), np.inf)
+        for i, seg in enumerate(segments):
+            window = signal[seg.start:seg.stop].astype(np.float64)
+            present = ok[seg.start:seg.stop]
+            t = np.linspace(-1.0, 1.0, window.size)
+            trend = np.polynomial.polynomial.polyfit(t[present], window[present], 2)
+            window = window - np.polynomial.polynomial.polyval(t, trend)
+            window[~present] = np.nan
+            spp = 4 * seg.microsteps_per_fullstep / abs(seg.microsteps_per_sample)
+            h = demodulate(window, seg.electrical_angle(), spp, orders=orders)
+            found = np.isfinite(h.phasors)
+            phasors[i, found] = h.phasors[found]
+            sigma[i, found] = np.sqrt(h.variance[found])
+        out.append(OtherAxis(axis, phasors, sigma))
+    return tuple(out)
 
 
 def _beyond(harmonics: list[Harmonics], orders: int, omega: NDArray[np.float64],

@@ -460,24 +460,31 @@ def _skipped_section(d: Diagnosis) -> str:
 def _located_section(d: Diagnosis) -> str:
     conditions = d.observations.conditions
     kinds = {LocatedKind.HARMONIC: "nominal residual",
-             LocatedKind.UNEXPLAINED: "unexplained"}
+             LocatedKind.UNEXPLAINED: "unexplained",
+             LocatedKind.SENSOR_AXIS: "another sensor axis"}
     harmonic = [loc.as_dict(conditions) for loc in d.located if loc.kind in kinds]
     drift = [loc.as_dict(conditions) for loc in d.located
              if loc.kind is LocatedKind.PARAMETER_DRIFT]
-    harmonic.sort(key=lambda item: (item["kind"] != LocatedKind.UNEXPLAINED.value,
+    # What no id explains first: it is what the engineer must look at.
+    harmonic.sort(key=lambda item: (item["kind"] == LocatedKind.HARMONIC.value,
                                     -float(item["chi2"])))
     shown = harmonic[:MAX_HARMONIC_ROWS]
     rows = []
     for item in shown:
         where = f"{_condition_of(item)}, order {item['order']}"
-        detail = (f"residual {_num(item['residual_rms_mps2'], 3)} of measured "
-                  f"{_num(item['measured_rms_mps2'], 3)} m/s² RMS")
+        if item["kind"] == LocatedKind.SENSOR_AXIS.value:
+            where = f"{item['axis']} axis: {where}"
+            detail = (f"{_num(item['residual_rms_mps2'], 3)} m/s² RMS beside "
+                      f"{_num(item['measured_rms_mps2'], 3)} tangential")
+        else:
+            detail = (f"residual {_num(item['residual_rms_mps2'], 3)} of measured "
+                      f"{_num(item['measured_rms_mps2'], 3)} m/s² RMS")
         rows.append(_located_row(kinds[LocatedKind(item["kind"])], where, item, detail))
     for item in drift:
         rows.append(_located_row("parameter drift", str(item["parameter"]), item,
                                  f"trend {item['trend']}"))
     note = (f"<p class='note'>{len(harmonic)} harmonic entries located, the "
-            f"{len(shown)} strongest (by χ², unexplained first) shown; {len(drift)} drift "
+            f"{len(shown)} strongest (by χ², what no id explains first) shown; {len(drift)} drift "
             "entries, all shown. Located: noise alone would give a χ² this large with "
             f"probability below {_constant(1.0 - SIGNIFICANT_CONFIDENCE)}.</p>")
     if not rows:

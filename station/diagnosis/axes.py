@@ -1,0 +1,150 @@
+"""The sensor's other two axes: is the element aligned with the load?
+
+An element aligned with the fixture reads the load's ripple on its tangential
+axis only. Its radial axis reads the centripetal acceleration, whose ripple is
+2Ω·w (Ω the load's mean speed, w its speed ripple): 2Ω/(kω) of the tangential
+ripple at order k, a few per cent at most and 90° from it. Its axial axis reads
+none. A share of the tangential ripple *in phase* on either axis means the
+element is turned on its mount, or its axes couple. No id of the vocabulary
+describes that, and the tangential axis alone cannot show it: a turn by α
+scales that axis by cos α, which every model's gain absorbs. So it is checked
+here, on data the harmonic fit never uses, and reported as a finding.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.core import Axis
+from station.diagnosis.observations import Observations, OtherAxis
+
+COUPLING_TOLERANCE = 0.03
+"""In-phase share of the tangential ripple an aligned sensor may show on another axis:
+a MEMS element's cross-axis sensitivity (1-2 % in data sheets) plus a degree of
+mounting. Above it, and clear of the noise, the element is turned or its axes couple."""
+
+COUPLING_SIGMAS = 5.0
+"""Standard errors the share must stand clear of zero (errors inflated by the fit's own
+χ²/dof when the axis carries more than coupling and noise)."""
+
+
+@dataclass(frozen=True)
+class AxisCell:
+    """One condition and order where the coupled ripple stands out of the axis's noise."""
+
+    condition: int
+    order: int
+    chi2: float  # of the axis's phasors once the kinematic part is taken out
+    dof: int
+    axis_rms_mps2: float
+    tangential_rms_mps2: float
+
+
+@dataclass(frozen=True)
+class AxisCoupling:
+    """What one non-tangential axis carries of the tangential ripple."""
+
+    axis: Axis
+    coupling: float  # in-phase share of the tangential ripple
+    sigma: float
+    kinematic: float  # fitted scale of the centripetal term: ±1 radial, 0 axial
+    chi2_per_dof: float  # of the fit (coupling + kinematics) against the axis's noise
+    values: int
+    cells: tuple[AxisCell, ...] = ()
+
+    @property
+    def significant(self) -> bool:
+        return (abs(self.coupling) > COUPLING_TOLERANCE
+                and abs(self.coupling) > COUPLING_SIGMAS * self.sigma)
+
+    @property
+    def turn_deg(self) -> float:
+        """The turn of the element that would give this share, were it a turn."""
+        return math.degrees(math.asin(max(-1.0, min(1.0, self.coupling))))
+
+    def finding(self) -> str:
+        low = 100.0 * (1.0 - math.cos(math.radians(self.turn_deg)))
+        return (
+            f"the sensor's {self.axis.value} axis carries {100 * self.coupling:+.1f} % (± "
+            f"{100 * self.sigma:.2g}) of the tangential ripple in phase, where an element "
+            f"aligned with the load carries none (tolerance {100 * COUPLING_TOLERANCE:.0f} %): "
+            f"the sensing element is turned by about {abs(self.turn_deg):.0f}° on its mount, "
+            "or its axes couple. No id of the vocabulary describes this. The tangential axis "
+            f"then reads the ripple about {low:.1f} % low: fitted torques scale with it, "
+            "trims (a null is a null) do not"
+        )
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "axis": self.axis.value,
+            "in_phase_share": round(self.coupling, 5),
+            "in_phase_share_sigma": round(self.sigma, 5),
+            "kinematic_scale": round(self.kinematic, 3),
+            "chi2_per_dof": round(self.chi2_per_dof, 3),
+            "values": self.values,
+            "significant": self.significant,
+        }
+
+
+def axis_couplings(obs: Observations) -> tuple[AxisCoupling, ...]:
+    """The in-phase share of the tangential ripple on each other axis, with its error."""
+    return tuple(_coupling(obs, other) for other in obs.other_axes)
+
+
+def _kinematic(obs: Observations) -> NDArray[np.complex128]:
+    """Centripetal ripple per unit of the radial axis's direction: 2Ω·w, w = a/(r·jkω)·r."""
+    k = np.arange(1, obs.orders + 1, dtype=np.float64)
+    jw = 1j * obs.omega[:, None] * k[None, :]
+    out: NDArray[np.complex128] = 2.0 * obs.load_speed[:, None] * obs.phasors / jw
+    return out
+
+
+def _coupling(obs: Observations, other: OtherAxis) -> AxisCoupling:
+    y = obs.phasors
+    kin = _kinematic(obs)
+    # σ is the spread of the complex phasor; each of its two parts carries half.
+    w = np.where(np.isfinite(other.sigma), math.sqrt(2.0) / np.maximum(other.sigma, 1e-12), 0.0)
+    # Real parameters (kinematic scale, in-phase share) against complex data: stack the
+    # real and imaginary parts of every weighted phasor.
+    design = np.stack([np.concatenate([(kin * w).real.ravel(), (kin * w).imag.ravel()]),
+                       np.concatenate([(y * w).real.ravel(), (y * w).imag.ravel()])], axis=1)
+    data = other.phasors * w
+    rhs = np.concatenate([data.real.ravel(), data.imag.ravel()])
+    used = np.concatenate([w.ravel(), w.ravel()]) > 0
+    values = int(np.count_nonzero(used))
+    if values <= 2:
+        return AxisCoupling(other.axis, 0.0, math.inf, 0.0, math.nan, values)
+    coef, *_ = np.linalg.lstsq(design[used], rhs[used], rcond=None)
+    residual = rhs[used] - design[used] @ coef
+    chi2_dof = float(residual @ residual) / (values - 2)
+    cov = np.linalg.pinv(design[used].T @ design[used]) * max(1.0, chi2_dof)
+    kinematic, share = float(coef[0]), float(coef[1])
+    coupling = AxisCoupling(other.axis, share, math.sqrt(max(float(cov[1, 1]), 0.0)),
+                            kinematic, chi2_dof, values)
+    if not coupling.significant:
+        return coupling
+    return AxisCoupling(coupling.axis, share, coupling.sigma, kinematic, chi2_dof, values,
+                        _cells(obs, other, other.phasors - kinematic * kin, w))
+
+
+def _cells(obs: Observations, other: OtherAxis, left: NDArray[np.complex128],
+           w: NDArray[np.float64]) -> tuple[AxisCell, ...]:
+    """Per condition and order: χ² of what the axis carries beyond the kinematics."""
+    cells = []
+    for c in range(len(obs.conditions)):
+        rows = (obs.condition == c)[:, None] & (w > 0)
+        for k in range(obs.orders):
+            here = rows[:, k]
+            if not here.any():
+                continue
+            chi2 = float(np.sum(np.abs(left[here, k] * w[here, k]) ** 2))
+            cells.append(AxisCell(
+                c, k + 1, chi2, int(2 * np.count_nonzero(here)),
+                float(np.sqrt(np.mean(np.abs(other.phasors[here, k]) ** 2))),
+                float(np.sqrt(np.mean(np.abs(obs.phasors[here, k]) ** 2)))))
+    return tuple(cells)

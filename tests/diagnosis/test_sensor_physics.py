@@ -1,0 +1,89 @@
+"""Physics of the sensor that no id of the vocabulary describes, told apart from the ids.
+
+Development trials (seeds below ``TRIAL_SEED_FLOOR``) recorded in process, the
+truth known: a sensing element turned on its mount shows on the sensor's other
+axes, and a bent transfer is modelled from the products it makes, never named
+with the nearest id.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+from threadpoolctl import threadpool_limits
+
+from station.diagnosis.axes import COUPLING_TOLERANCE, axis_couplings
+from station.diagnosis.diagnose import diagnose
+from station.diagnosis.observations import Observations, observe
+from station.physics.params import UnitParams, UnnamedEffect
+from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
+from station.sim.inprocess import simulate_timeline
+
+
+def _case(effect: UnnamedEffect, seed: int) -> Case:
+    return Case(TrialClass(frozenset(), frozenset({effect})), seed)
+
+
+def _observed(case: Case, unit: UnitParams | None = None) -> Observations:
+    plan = plan_trial(case)
+    timeline = simulate_timeline(unit or plan.unit, plan.schedule, seed=case.seed,
+                                 loss=plan.loss, substeps=PLANT_SUBSTEPS)
+    return observe(timeline)
+
+
+@pytest.fixture(scope="module")
+def turned() -> tuple[Case, Observations]:
+    case = _case(UnnamedEffect.SENSOR_TILT, 22)
+    return case, _observed(case)
+
+
+def test_a_turned_sensor_puts_the_sine_of_its_turn_on_another_axis(
+    turned: tuple[Case, Observations],
+) -> None:
+    case, obs = turned
+    tilt = plan_trial(case).unit.sensor.tilt_rad
+    assert abs(math.degrees(tilt)) > 3.0, "the development seed draws a visible turn"
+    found = {c.axis: c for c in axis_couplings(obs)}
+    coupled = [c for c in found.values() if c.significant]
+    assert len(coupled) == 1, found
+    # The element's tangential axis reads cos α·a_t + sin α·a_r, its radial one
+    # cos α·a_r − sin α·a_t: the share is sin α over cos α, its sign the axes' convention.
+    share = coupled[0].coupling
+    assert abs(abs(share) - abs(math.tan(tilt))) < 0.1 * abs(math.tan(tilt)), (share, tilt)
+    # The radial axis also carries the centripetal ripple 2Ω·w at its known size.
+    assert 0.8 < abs(coupled[0].kinematic) < 1.25, coupled[0]
+    assert coupled[0].cells, "the coupled cells are located"
+
+
+def test_an_aligned_sensor_shows_no_coupling_on_its_other_axes(
+    turned: tuple[Case, Observations],
+) -> None:
+    case, _ = turned
+    unit = plan_trial(case).unit
+    aligned = replace(unit, sensor=replace(unit.sensor, tilt_rad=0.0))
+    for coupling in axis_couplings(_observed(case, aligned)):
+        assert not coupling.significant, coupling
+        assert abs(coupling.coupling) < COUPLING_TOLERANCE / 10, coupling
+
+
+def test_a_bent_sensor_transfer_is_modelled_and_given_no_id() -> None:
+    """The bend's products were once taken for friction and a drifting clock."""
+    case = _case(UnnamedEffect.SENSOR_NONLINEARITY, 23)
+    plan = plan_trial(case)
+    sensor = plan.unit.sensor
+    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
+                                 substeps=PLANT_SUBSTEPS)
+    with threadpool_limits(limits=1, user_api="blas"):
+        doc = diagnose(timeline).to_dict()
+    assert doc["effects"] == [], doc["effects"]
+    assert doc["mismatch"]
+    bend = [f for f in doc["findings"] if f["parameter"] == "sensor_bend"]
+    assert len(bend) == 1, doc["findings"]
+    assert "No id of the vocabulary" in bend[0]["finding"]
+    assert doc["fit"]["after"] < doc["fit"]["before"]
+    # The fitted c2 (the stronger term here) is the plant's.
+    fitted = bend[0]["values"]
+    assert abs(fitted["c2"] - sensor.nonlinearity_c2) < 4 * fitted["c2_sigma"], fitted
+    assert abs(fitted["c3"] - sensor.nonlinearity_c3) < 4 * fitted["c3_sigma"], fitted
