@@ -14,13 +14,14 @@ here, on data the harmonic fit never uses, and reported as a finding.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from station.core import Axis
+from station.diagnosis.model import radial_ripple
 from station.diagnosis.observations import Observations, OtherAxis
 
 COUPLING_TOLERANCE = 0.03
@@ -97,11 +98,18 @@ def axis_couplings(obs: Observations) -> tuple[AxisCoupling, ...]:
 
 
 def _kinematic(obs: Observations) -> NDArray[np.complex128]:
-    """Centripetal ripple per unit of the radial axis's direction: 2Ω·w, w = a/(r·jkω)·r."""
-    k = np.arange(1, obs.orders + 1, dtype=np.float64)
-    jw = 1j * obs.omega[:, None] * k[None, :]
-    out: NDArray[np.complex128] = 2.0 * obs.load_speed[:, None] * obs.phasors / jw
+    """Centripetal ripple per unit of the radial axis's direction, orders 1..K."""
+    out: NDArray[np.complex128] = radial_ripple(obs)[:, :obs.orders]
     return out
+
+
+def with_axes_checked(obs: Observations) -> Observations:
+    """``obs`` marked so that every model carries the radial ripple the tangential axis
+    reads, when another axis shows the element turned (its tangential reading is then
+    cos α·a_t + sin α·a_r, and the second part, 90° from the first and falling with
+    order, was once taken for current distortion)."""
+    mixed = any(c.significant for c in axis_couplings(obs))
+    return replace(obs, axis_mixed=mixed) if mixed != obs.axis_mixed else obs
 
 
 def _coupling(obs: Observations, other: OtherAxis) -> AxisCoupling:

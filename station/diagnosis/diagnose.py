@@ -48,7 +48,7 @@ from threadpoolctl import threadpool_limits
 from station.analysis.segments import SettleFallback
 from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, Effect
-from station.diagnosis.axes import AxisCoupling, axis_couplings
+from station.diagnosis.axes import AxisCoupling, axis_couplings, with_axes_checked
 from station.diagnosis.fit import (
     SCREEN_HELD,
     Fit,
@@ -979,9 +979,9 @@ def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None) 
     with threadpool_limits(limits=1, user_api="blas"):
         if progress is not None:
             progress("fitting the nominal model")
-        first = _observe(timeline)
+        first = with_axes_checked(_observe(timeline))
         fits = fit_nominal(first)
-        obs = observe(timeline, settle_fallback=settle_fallback(fits.free))
+        obs = with_axes_checked(observe(timeline, settle_fallback=settle_fallback(fits.free)))
         if obs.segments != first.segments:
             if progress is not None:
                 progress(f"segments settled by the fitted chain: {obs.model_settled}")

@@ -195,6 +195,10 @@ def layout_for(spec: ModelSpec, obs: Observations) -> Layout:
     for effect in sorted(spec.effects):
         for block in GROUP_BLOCKS[effect](spec, obs):
             lay.add(block)
+    if obs.axis_mixed:
+        # The share of the radial ripple the tangential axis reads: sin α for an element
+        # turned by α (either sign: the radial axis's direction is not declared).
+        lay.add(Block("axis_mix", 1, 0.0, -0.7, 0.7))
     if spec.sensor_bend:
         # c2, c3 as fractions of the full scale: the worst deviation of a MEMS element's
         # transfer is a few per cent; a third of the range is no longer a sensor.
@@ -213,6 +217,16 @@ BEND_GRID = 128
 def clock_middle(obs: Observations) -> float:
     """The sample number (from the first SYNC) the clock's phase is counted from."""
     return 0.5 * (float(obs.span[0, 0]) + float(obs.span[-1, 1]))
+
+
+def radial_ripple(obs: Observations) -> NDArray[np.complex128]:
+    """The centripetal ripple 2Ω·w at the sensor, orders 1..K then beyond, from the
+    measured tangential ripple itself (w = a/(jkω), to first order)."""
+    phasors = obs.phasors if obs.beyond is None else np.hstack([obs.phasors, obs.beyond])
+    k = np.arange(1, phasors.shape[1] + 1, dtype=np.float64)
+    out: NDArray[np.complex128] = (2.0 * obs.load_speed[:, None] * phasors
+                                   / (1j * obs.omega[:, None] * k[None, :]))
+    return out
 
 
 def bend_bases(obs: Observations) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
@@ -408,6 +422,7 @@ class Model:
         self.current_synth = np.exp(1j * np.outer(self.current_orders, x))  # (H, N)
         self.load_speed = obs.load_speed[:, None]  # rad/s at the load
         self.bend = bend_bases(obs) if spec.sensor_bend else None
+        self.radial = radial_ripple(obs) if obs.axis_mixed else None
         self._clock_n = self._clock_samples()
         self.clock_middle = clock_middle(obs)
         self._last: tuple[NDArray[np.float64], Motion] | None = None
@@ -738,10 +753,18 @@ class Model:
         """The tangential harmonics as the fixture made them, orders 1..K and beyond:
         the recording's own, with the sensor's bend undone when the model has one."""
         below, above = self.obs.phasors, self.beyond
+        k = self.obs.orders
+        if self.radial is not None:
+            # A turned element reads cos α·a_t + sin α·a_r: the radial part taken out, and
+            # the cos α with it (the radius is known, so the swing fixes the scale).
+            mix = self._scalar(p, "axis_mix")
+            turn = math.sqrt(max(1.0 - mix * mix, 1e-6))
+            below = (below - mix * self.radial[:, :k]) / turn
+            if above is not None:
+                above = (above - mix * self.radial[:, k:]) / turn
         if self.bend is not None:
             c2, c3 = self._p(p, "sensor_bend")
             undo = c2 * self.bend[0] + c3 * self.bend[1]
-            k = self.obs.orders
             below = below - undo[:, :k]
             if above is not None:
                 above = above - undo[:, k:]

@@ -150,6 +150,9 @@ class Observations:
     beyond: NDArray[np.complex128] | None = None
     other_axes: tuple[OtherAxis, ...] = ()
     dc: NDArray[np.float64] | None = None  # (S,) mean tangential acceleration, m/s²
+    # The tangential axis also reads part of the radial ripple (a turned element, found
+    # on the other axes): every model then carries that part (``Model.measured``).
+    axis_mixed: bool = False
 
     @property
     def orders(self) -> int:
@@ -200,6 +203,7 @@ class Observations:
             other_axes=tuple(replace(a, phasors=a.phasors[keep], sigma=a.sigma[keep])
                              for a in self.other_axes),
             dc=None if self.dc is None else self.dc[keep],
+            axis_mixed=self.axis_mixed,
         )
 
 
