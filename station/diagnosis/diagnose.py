@@ -1011,6 +1011,8 @@ def _reweighted(nominal: Nominal, chosen: Candidate) -> Nominal | None:
 def diagnose_observations(obs: Observations, progress: Callable[[str], None] | None = None,
                           *, nominal: Nominal | None = None) -> Diagnosis:
     with threadpool_limits(limits=1, user_api="blas"):
+        if nominal is None:
+            obs = with_axes_checked(obs)
         fits = nominal if nominal is not None else fit_nominal(obs)
         around: tuple[frozenset[Effect], tuple[Effect, ...]] | None = None
         for _ in range(2):
