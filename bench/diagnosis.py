@@ -57,6 +57,8 @@ def measure() -> list[BenchRecord]:
         records.append(BenchRecord(f"diagnosis_named_exactly_{cls.label}", exact, "fraction",
                                    NAMED_TARGET, Goal.AT_LEAST))
     refused = [t for t in trials if REFUSED in t.doc]
+    for t in refused:  # each reproducible from its label (Case(cls, seed))
+        print(f"refused {t.case.label}: {t.doc[REFUSED]}", file=sys.stderr, flush=True)
     done = [t for t in trials if REFUSED not in t.doc]
     controls = [t for t in trials if t.case.cls.control]
     unnamed = [t for t in trials if t.case.cls.out_of_vocabulary]
