@@ -229,6 +229,35 @@ def radial_ripple(obs: Observations) -> NDArray[np.complex128]:
     return out
 
 
+def sawtooth_mean(u0: NDArray[np.float64], u1: NDArray[np.float64],
+                  a: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """Mean of e^{-ja·frac(u)} for u running linearly from ``u0`` to ``u1`` (per row),
+    for each column of ``a``: a wrapping clock's delays over a segment are T·frac(u).
+
+    With G(v) = ∫₀ᵛ e^{-jax} dx = (1 − e^{-jav})/(ja), an antiderivative of the
+    periodic integrand is F(u) = ⌊u⌋·G(1) + G(frac u), and the mean is
+    [F(u₀) − F(u₁)]/(u₀ − u₁): exact, and smooth in the clock's rate and phase.
+    """
+    small = np.abs(a) < 1e-9
+    ja = np.where(small, 1.0, 1j * a)
+
+    def g(v: NDArray[np.float64]) -> NDArray[np.complex128]:
+        out: NDArray[np.complex128] = np.where(small, v, (1.0 - np.exp(-ja * v)) / ja)
+        return out
+
+    def big_f(u: NDArray[np.float64]) -> NDArray[np.complex128]:
+        part = np.broadcast_to((u - np.floor(u))[:, None], a.shape)
+        out: NDArray[np.complex128] = np.floor(u)[:, None] * g(np.ones_like(a)) + g(part)
+        return out
+
+    width = (u0 - u1)[:, None]
+    still = np.abs(width) < 1e-9  # no drift across the segment: the delay is constant
+    safe = np.where(still, 1.0, width)
+    mean = np.exp(-1j * a * np.mod(0.5 * (u0 + u1), 1.0)[:, None])
+    out: NDArray[np.complex128] = np.where(still, mean, (big_f(u0) - big_f(u1)) / safe)
+    return out
+
+
 def bend_bases(obs: Observations) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
     """Harmonics of m²/FS and m³/FS² per segment, m the measured tangential waveform
     (its mean and every demodulated order), orders 1..K then the orders beyond.
@@ -561,39 +590,15 @@ class Model:
 
     def _sawtooth_factor(self, p: NDArray[np.float64], k: NDArray[np.float64]
                          ) -> NDArray[np.complex128]:
-        """``clock_factor`` for a wrapping clock, integrated exactly.
-
-        With u = φ − nδ the delay is T·frac(u), so the segment's mean of f(u) =
-        e^{-ja·frac(u)} (a = kωT) is [F(u₀) − F(u₁)]/(u₀ − u₁) with F(u) = ⌊u⌋·G(1) +
-        G(frac u), G(v) = (1 − e^{-jav})/(ja). A sum over sample points instead jumps
-        whenever a wrap crosses one of them, and the fit then stalls on the steps.
-        """
+        """``clock_factor`` for a wrapping clock, integrated exactly (``sawtooth_mean``):
+        a sum over sample points instead jumps whenever a wrap crosses one of them, and
+        the fit then stalls on the steps."""
         t = self.obs.metadata.sync_period_s
         drift = self._scalar(p, "clock_drift_ppm") * 1e-6
         phase = self._scalar(p, "clock_phase")
         span = self.obs.span.astype(np.float64) - self.clock_middle
-        u0 = phase - span[:, 0] * drift  # (S,)
-        u1 = phase - span[:, 1] * drift
         a = k[None, :] * self.obs.omega[:, None] * t  # (S, K)
-        small = np.abs(a) < 1e-9
-        ja = np.where(small, 1.0, 1j * a)
-
-        def g(v: NDArray[np.float64]) -> NDArray[np.complex128]:
-            out: NDArray[np.complex128] = np.where(small, v, (1.0 - np.exp(-ja * v)) / ja)
-            return out
-
-        def big_f(u: NDArray[np.float64]) -> NDArray[np.complex128]:
-            whole = np.floor(u)[:, None]
-            part = np.broadcast_to((u - np.floor(u))[:, None], a.shape)
-            out: NDArray[np.complex128] = whole * g(np.ones_like(a)) + g(part)
-            return out
-
-        width = (u0 - u1)[:, None]
-        if abs(drift) * float(np.min(span[:, 1] - span[:, 0])) < 1e-9:
-            still: NDArray[np.complex128] = np.exp(-1j * a * np.mod(0.5 * (u0 + u1), 1.0)[:, None])
-            return still
-        out: NDArray[np.complex128] = (big_f(u0) - big_f(u1)) / width
-        return out
+        return sawtooth_mean(phase - span[:, 0] * drift, phase - span[:, 1] * drift, a)
 
     def _current_lag(self, p: NDArray[np.float64]) -> tuple[NDArray[np.complex128],
                                                             NDArray[np.complex128]]:

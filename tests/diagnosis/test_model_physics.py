@@ -19,7 +19,7 @@ from station.core import Effect
 from station.diagnosis.diagnose import _transplant, fit_nominal
 from station.diagnosis.fit import fit
 from station.diagnosis.groups import GROUP_ESTIMATES
-from station.diagnosis.model import Model, ModelSpec
+from station.diagnosis.model import Model, ModelSpec, sawtooth_mean
 from station.diagnosis.observations import Observations, observe
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
@@ -89,3 +89,21 @@ def test_a_drifting_sensor_clock_is_found_from_the_recording_alone() -> None:
         result = fit(model, starts, keep=len(starts))
     assert result.scalar("clock_drift_ppm") == pytest.approx(truth, abs=5.0)
     assert result.chi2 < 0.5 * nominal.chi2
+
+
+@pytest.mark.parametrize("drift_ppm", [-2400.0, -37.0, 0.0, 5.0, 412.0])
+def test_a_wrapping_clocks_segment_mean_is_the_mean_over_its_samples(drift_ppm: float) -> None:
+    """The exact integral the clock model uses against the plain mean over the samples
+    (the integral treats samples as a continuum: within a few parts in ten thousand)."""
+    spans = np.array([[-20000.0, -19500.0], [300.0, 1100.0], [41000.0, 41250.0]])
+    omega = np.array([2 * np.pi * 13.0, -2 * np.pi * 7.0, 2 * np.pi * 18.0])
+    k = np.arange(1.0, 9.0)
+    phase, t = 0.37, 1e-3
+    a = k[None, :] * omega[:, None] * t
+    exact = sawtooth_mean(phase - spans[:, 0] * drift_ppm * 1e-6,
+                          phase - spans[:, 1] * drift_ppm * 1e-6, a)
+    for s, (first, last) in enumerate(spans):
+        n = np.arange(first, last) + 0.5
+        delays = np.mod(phase - n * drift_ppm * 1e-6, 1.0)
+        sampled = np.exp(-1j * a[s][:, None] * delays[None, :]).mean(axis=1)
+        assert np.max(np.abs(exact[s] - sampled)) < 1e-3, (s, drift_ppm)
