@@ -97,12 +97,6 @@ def axis_couplings(obs: Observations) -> tuple[AxisCoupling, ...]:
     return tuple(_coupling(obs, other) for other in obs.other_axes)
 
 
-def _kinematic(obs: Observations) -> NDArray[np.complex128]:
-    """Centripetal ripple per unit of the radial axis's direction, orders 1..K."""
-    out: NDArray[np.complex128] = radial_ripple(obs)[:, :obs.orders]
-    return out
-
-
 def with_axes_checked(obs: Observations) -> Observations:
     """``obs`` marked so that every model carries the radial ripple the tangential axis
     reads, when another axis shows the element turned (its tangential reading is then
@@ -114,7 +108,7 @@ def with_axes_checked(obs: Observations) -> Observations:
 
 def _coupling(obs: Observations, other: OtherAxis) -> AxisCoupling:
     y = obs.phasors
-    kin = _kinematic(obs)
+    kin = radial_ripple(obs)[:, :obs.orders]  # centripetal, per unit of the radial sign
     # σ is the spread of the complex phasor; each of its two parts carries half.
     w = np.where(np.isfinite(other.sigma), math.sqrt(2.0) / np.maximum(other.sigma, 1e-12), 0.0)
     # Real parameters (kinematic scale, in-phase share) against complex data: stack the

@@ -555,22 +555,14 @@ class Model:
         return span[:, :1] + (span[:, 1:] - span[:, :1]) * frac[None, :]
 
     def sample_delay(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
-        """How long before its SYNC each sample was taken (s), at ``_clock_n``.
-
-        A free-running sensor clock that is off by δ takes each sample a little
-        earlier or later than the last; a TPDO carries the latest sample taken
-        before its SYNC, so the lag is a sawtooth of one SYNC period. A sensor
-        that instead stamps its own samples drifts without bound.
-        """
+        """How long before its SYNC each sample was taken (s), at ``_clock_n``, for a
+        sensor that stamps its own samples: its clock, off by δ, drifts without bound.
+        (One that holds its latest sample per SYNC lags by a sawtooth of one period
+        instead, integrated exactly in ``_sawtooth_factor``.) Counted from the
+        recording's middle, like the sawtooth's phase."""
         t = self.obs.metadata.sync_period_s
         drift = self._scalar(p, "clock_drift_ppm") * 1e-6
-        # Counted from the recording's middle: there a change of rate moves no sample, so
-        # rate and phase are nearly independent and the fit can walk the narrow valley.
-        n = self._clock_n - self.clock_middle
-        if self.spec.clock_wraps:
-            phase = self._scalar(p, "clock_phase")
-            return np.asarray(t * np.mod(phase - n * drift, 1.0), dtype=np.float64)
-        return np.asarray(-t * n * drift, dtype=np.float64)
+        return np.asarray(-t * (self._clock_n - self.clock_middle) * drift, dtype=np.float64)
 
     def clock_factor(self, p: NDArray[np.float64], k: NDArray[np.float64] | None = None
                      ) -> NDArray[np.complex128]:
@@ -596,6 +588,8 @@ class Model:
         t = self.obs.metadata.sync_period_s
         drift = self._scalar(p, "clock_drift_ppm") * 1e-6
         phase = self._scalar(p, "clock_phase")
+        # Counted from the recording's middle: there a change of rate moves no sample, so
+        # rate and phase are nearly independent and the fit can walk the narrow valley.
         span = self.obs.span.astype(np.float64) - self.clock_middle
         a = k[None, :] * self.obs.omega[:, None] * t  # (S, K)
         return sawtooth_mean(phase - span[:, 0] * drift, phase - span[:, 1] * drift, a)
