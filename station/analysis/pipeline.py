@@ -143,7 +143,7 @@ def measure(
     out: list[Measured] = []
     for seg in segments:
         window = signal[seg.start : seg.stop]
-        spp = 4 * seg.microsteps_per_fullstep / abs(seg.microsteps_per_sample)
+        spp = seg.samples_per_period
         try:
             h = demodulate(window, seg.electrical_angle(), spp, orders=options.orders)
         except ValueError as exc:
@@ -176,7 +176,7 @@ def speed_errors(segments: Sequence[Segment], signal: NDArray[np.float64]) -> li
             drifts.append((0.0, math.inf))
             continue
         centred = np.where(present, window - np.mean(window[present]), 0.0)
-        spp = 4 * seg.microsteps_per_fullstep / abs(seg.microsteps_per_sample)
+        spp = seg.samples_per_period
         z = period_phasors(centred, present, seg.electrical_angle(), spp, _DRIFT_ORDERS)
         drifts.append(phase_drift(z, _DRIFT_ORDERS))
     out: list[float] = []

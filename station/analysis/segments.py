@@ -105,6 +105,11 @@ class Segment:
         """Signed: negative when the electrical angle decreases."""
         return self.microsteps_per_sample / (4 * self.microsteps_per_fullstep) / sync_period_s
 
+    @property
+    def samples_per_period(self) -> float:
+        """Samples per electrical period: one period is 4·m microsteps (ICD.md §2)."""
+        return 4 * self.microsteps_per_fullstep / abs(self.microsteps_per_sample)
+
     def electrical_angle(self) -> NDArray[np.float64]:
         """ICD.md §2: x_u = 2π·(position mod 4m)/(4m) at every sample of the segment."""
         cycle = 4 * self.microsteps_per_fullstep

@@ -331,7 +331,7 @@ def _other_axes(timeline: Timeline, segments: list[Segment], orders: int
             trend = np.polynomial.polynomial.polyfit(t[present], window[present], 2)
             window = window - np.polynomial.polynomial.polyval(t, trend)
             window[~present] = np.nan
-            spp = 4 * seg.microsteps_per_fullstep / abs(seg.microsteps_per_sample)
+            spp = seg.samples_per_period
             h = demodulate(window, seg.electrical_angle(), spp, orders=orders)
             found = np.isfinite(h.phasors)
             phasors[i, found] = h.phasors[found]
