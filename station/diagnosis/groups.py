@@ -18,13 +18,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.core import Effect
-from station.diagnosis.fit import Fit, screen
+from station.diagnosis.fit import Fit, covariance, screen
 from station.diagnosis.model import (
     DETENT_ORDERS,
     DISTORTION_ORDERS,
     FLUX_ORDERS,
     ChainKind,
     Model,
+    saturation_shapes,
 )
 
 Starts = dict[str, list[float]]
@@ -297,16 +298,26 @@ def _clock(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
 
 
 def _saturation(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
-    sl = fit.model.layout.slices["saturation"]
-    d, e = (float(v) for v in fit.params[sl])
-    sd, se = (float(v) for v in sig[sl])
-    # The fall at rated current is D − E; its σ is bounded by the two σ added in
-    # quadrature with full anticorrelation ignored (the conservative side).
-    return {"kt_drop_at_rated_percent": 100.0 * (d - e),
-            "sigma_percent": 100.0 * math.hypot(sd, se),
-            "kt_drop_at_half_rated_percent": 100.0 * (d / 4 - e / 16),
-            "law": "Kt(|i|)/Kt(0) = 1 − D·u² + E·u⁴, u = |i|/I_rated",
-            "D": d, "D_sigma": sd, "E": e, "E_sigma": se}
+    model = fit.model
+    sl = model.layout.slices["saturation"]
+    w = fit.params[sl]
+    cov = covariance(fit)[sl, sl]
+
+    def drop(current_A: float) -> tuple[float, float]:
+        # The fall is linear in the two weights, so its σ is exact through their covariance.
+        shapes = np.array(saturation_shapes(np.array((current_A / model.largest_A) ** 2)))
+        return float(shapes @ w), math.sqrt(max(float(shapes @ cov @ shapes), 0.0))
+
+    largest, largest_sig = drop(model.largest_A)
+    half, half_sig = drop(0.5 * model.largest_A)
+    return {"kt_drop_at_largest_current_percent": 100.0 * largest,
+            "sigma_percent": 100.0 * largest_sig,
+            "largest_current_mA": 1000.0 * model.largest_A,
+            "kt_drop_at_half_that_percent": 100.0 * half,
+            "kt_drop_at_half_that_sigma_percent": 100.0 * half_sig,
+            "law": "Kt(|i|)/Kt(0) = 1 − w1·(2u² − u⁴) − w2·u⁴, u = |i|/I_max, w1, w2 ≥ 0",
+            "w1": float(w[0]), "w1_sigma": float(sig[sl][0]),
+            "w2": float(w[1]), "w2_sigma": float(sig[sl][1])}
 
 
 def _eccentricity(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:

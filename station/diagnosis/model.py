@@ -332,10 +332,22 @@ def _blocks_clock(spec: ModelSpec, obs: Observations) -> list[Block]:
 
 
 def _blocks_saturation(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # Kt(|i|)/Kt(0) = 1 − D·u² + E·u⁴, u = |i|/I_rated: the first two terms of any smooth
-    # law even in the current, so a fall that steepens (or levels off) near rated current
-    # is followed whatever curve the iron has; kept where Kt stays positive.
-    return [Block("saturation", 2, 0.0, -0.5, 0.8, BlockKind.LINEAR)]
+    # The two non-negative weights of ``saturation_shapes``: every even quartic law that
+    # never rises over the recorded currents, and nothing else (see ``Model.saturation``).
+    return [Block("saturation", 2, 0.0, 0.0, 0.8, BlockKind.LINEAR)]
+
+
+def saturation_shapes(u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                        NDArray[np.float64]]:
+    """Kt's two falls in u² = (|i|/I_max)², I_max the recording's largest current.
+
+    An even quartic 1 − D·u² + E·u⁴ falls monotonically on [0, 1] exactly when its
+    coefficients are a non-negative mix of these two: 2u² − u⁴ (falls early and levels
+    off at the largest current) and u⁴ (flat at zero, steepening). Saturation only ever
+    takes torque away, so with the weights kept non-negative the group cannot pose as a
+    Kt that rises with the current, which is what a reluctance spring looks like.
+    """
+    return 2.0 * u2 - u2 * u2, u2 * u2
 
 
 def _blocks_eccentricity(spec: ModelSpec, obs: Observations) -> list[Block]:
@@ -432,6 +444,7 @@ class Model:
         self.radius = meta.sensor_radius_m
         self.gear_ratio = meta.gear_ratio
         self.rated_A = meta.rated_current_mA / 1000.0
+        self.largest_A = float(max(np.max(obs.amplitude_A), 1e-3))
         k = np.arange(1, obs.orders + 1, dtype=np.float64)
         self.k = k
         x = 2.0 * np.pi * np.arange(GRID) / GRID
@@ -647,9 +660,9 @@ class Model:
         """Kt relative to its low-current value at the instantaneous current magnitude."""
         if not self.layout.has("saturation"):
             return 1.0
-        d, e = (float(v) for v in self._p(p, "saturation"))
-        u2 = (i_a * i_a + i_b * i_b) / (self.rated_A * self.rated_A)
-        out: NDArray[np.float64] = 1.0 - u2 * (d - e * u2)
+        w1, w2 = (float(v) for v in self._p(p, "saturation"))
+        b1, b2 = saturation_shapes((i_a * i_a + i_b * i_b) / self.largest_A**2)
+        out: NDArray[np.float64] = 1.0 - w1 * b1 - w2 * b2
         return out
 
     def magnet_weights(self, p: NDArray[np.float64], m: Motion
@@ -859,9 +872,10 @@ class Model:
         dsat_a: NDArray[np.float64] | float = 0.0
         dsat_b: NDArray[np.float64] | float = 0.0
         if lay.has("saturation"):
-            d, e = self._p(p, "saturation")
-            u2 = (m.i_a**2 + m.i_b**2) / self.rated_A**2
-            g = (-2.0 * d + 4.0 * e * u2) / self.rated_A**2
+            w1, w2 = self._p(p, "saturation")
+            u2 = (m.i_a**2 + m.i_b**2) / self.largest_A**2
+            # d(Kt)/d(i) = d(Kt)/d(u²) · 2i/I_max²
+            g = -2.0 * (w1 * (2.0 - 2.0 * u2) + w2 * 2.0 * u2) / self.largest_A**2
             dsat_a, dsat_b = g * m.i_a, g * m.i_b
         d_ia = mod * (sat * pa + dsat_a * magnet)
         d_ib = mod * (sat * pb + dsat_b * magnet)
@@ -908,8 +922,8 @@ class Model:
             elif name == "reluctance":
                 bases.append(self.reluctance_shape(m))
             elif name == "saturation":
-                u2 = (m.i_a**2 + m.i_b**2) / self.rated_A**2
-                bases += [-mod * u2 * magnet, mod * u2 * u2 * magnet]
+                b1, b2 = saturation_shapes((m.i_a**2 + m.i_b**2) / self.largest_A**2)
+                bases += [-mod * b1 * magnet, -mod * b2 * magnet]
             elif name == "eccentricity":
                 inner = sat * magnet + self.detent(p, m)
                 mech = self.obs.mechanical[:, None]

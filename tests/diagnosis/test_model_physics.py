@@ -16,10 +16,10 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 from station.core import Effect
-from station.diagnosis.diagnose import _transplant, fit_nominal
-from station.diagnosis.fit import fit
-from station.diagnosis.groups import GROUP_ESTIMATES
-from station.diagnosis.model import Model, ModelSpec, sawtooth_mean
+from station.diagnosis.diagnose import _transplant, fit_nominal, fit_spec, nominal_of
+from station.diagnosis.fit import fit, sigmas
+from station.diagnosis.groups import GROUP_ESTIMATES, GROUP_PARAMETERS
+from station.diagnosis.model import Model, ModelSpec, saturation_shapes, sawtooth_mean
 from station.diagnosis.observations import Observations, observe
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
@@ -107,3 +107,47 @@ def test_a_wrapping_clocks_segment_mean_is_the_mean_over_its_samples(drift_ppm: 
         delays = np.mod(phase - n * drift_ppm * 1e-6, 1.0)
         sampled = np.exp(-1j * a[s][:, None] * delays[None, :]).mean(axis=1)
         assert np.max(np.abs(exact[s] - sampled)) < 1e-3, (s, drift_ppm)
+
+
+def test_the_saturation_group_can_only_take_torque_away_over_the_recorded_currents() -> None:
+    """Any weights the group's bounds allow give a Kt that never rises with the current up
+    to the recording's largest: a Kt rising with current is a reluctance spring, and a
+    group that could pose as one would be named for it."""
+    u2 = np.linspace(0.0, 1.0, 201) ** 2
+    b1, b2 = saturation_shapes(u2)
+    rng = np.random.default_rng(5)
+    for w1, w2 in rng.uniform(0.0, 0.8, size=(200, 2)):
+        kt = 1.0 - w1 * b1 - w2 * b2
+        assert np.all(np.diff(kt) <= 1e-12)
+    # Both ends of the family: falling early and levelling off, flat first and steepening.
+    step = 1e-4
+    ends = saturation_shapes(np.array([0.0, step, 1.0 - step, 1.0]))
+    assert (ends[0][3] - ends[0][2]) / step < 1e-3 < (ends[0][1] - ends[0][0]) / step
+    assert (ends[1][1] - ends[1][0]) / step < 1e-3 < (ends[1][3] - ends[1][2]) / step
+
+
+def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() -> None:
+    """The plant's 1/√(1 + (I/I_s)²) is not the model's law; the fall between the lowest
+    and the largest current recorded must still come out within 4σ of the plant's."""
+    plan = plan_trial(Case(TrialClass(frozenset({Effect.MAGNETIC_SATURATION})), 24))
+    motor = plan.unit.motor
+    timeline = simulate_timeline(plan.unit, plan.schedule, seed=24, loss=plan.loss,
+                                 substeps=PLANT_SUBSTEPS)
+    spec_effects = frozenset({Effect.MAGNETIC_SATURATION})
+    with threadpool_limits(limits=1, user_api="blas"):
+        _, nominal = nominal_of(timeline)
+        result = fit_spec(nominal.balanced.model.obs,
+                          replace(nominal.balanced.model.spec, effects=spec_effects),
+                          nominal.balanced, nominal.free)
+    model = result.model
+    lowest = float(np.min(model.obs.amplitude_A))
+    fitted = GROUP_PARAMETERS[Effect.MAGNETIC_SATURATION](result, sigmas(result))
+    largest_drop = fitted["kt_drop_at_largest_current_percent"] / 100.0
+    b1, b2 = saturation_shapes(np.array((lowest / model.largest_A) ** 2))
+    w = result.params[model.layout.slices["saturation"]]
+    lowest_drop = float(b1 * w[0] + b2 * w[1])
+    measured = (1.0 - largest_drop) / (1.0 - lowest_drop)
+    plant = float(motor.saturation_factor(model.largest_A) / motor.saturation_factor(lowest))
+    assert plant < 0.97, "the development trial must saturate visibly"
+    sigma = fitted["sigma_percent"] / 100.0
+    assert abs(measured - plant) < 4.0 * sigma, (measured, plant, sigma)
