@@ -974,8 +974,10 @@ def _observe(timeline: Timeline) -> Observations:
         return observe(timeline, settle_fallback=_prior_settle)
 
 
-def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None) -> Diagnosis:
-    """The whole diagnosis of one recording's timeline."""
+def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
+               ) -> tuple[Observations, Nominal]:
+    """The recording's observations and its nominal fit, exactly as the diagnosis takes them
+    (its held-out χ² is ``fit.before``): a clean twin's is what an effect adds to."""
     with threadpool_limits(limits=1, user_api="blas"):
         if progress is not None:
             progress("fitting the nominal model")
@@ -986,7 +988,13 @@ def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None) 
             if progress is not None:
                 progress(f"segments settled by the fitted chain: {obs.model_settled}")
             fits = fit_nominal(obs, previous=fits)
-        return diagnose_observations(obs, progress, nominal=fits)
+        return obs, fits
+
+
+def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None) -> Diagnosis:
+    """The whole diagnosis of one recording's timeline."""
+    obs, fits = nominal_of(timeline, progress)
+    return diagnose_observations(obs, progress, nominal=fits)
 
 
 def _reweighted(nominal: Nominal, chosen: Candidate) -> Nominal | None:

@@ -29,14 +29,21 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
+from station.core import Effect
 from station.sim.concealed import (
     CLASSES,
     REFUSED,
     TRIAL_SEED_FLOOR,
+    VISIBLE_EXCESS,
+    Case,
     Trial,
+    TrialClass,
     cases,
     confusion,
     fresh_seeds,
+    named,
+    plan_trial,
+    twin_excess,
 )
 from station.sim.concealed import run_trial as run
 
@@ -78,6 +85,33 @@ def test_a_clean_unit_is_given_no_effect(diagnosed: list[Trial]) -> None:
     for t in diagnosed:
         if t.case.cls.control:
             assert t.doc["effects"] == [], f"{t.case.label}: {json.dumps(t.doc['effects'])[:400]}"
+
+
+def test_physics_below_detection_is_given_no_id_it_does_not_have(diagnosed: list[Trial]) -> None:
+    """Too weak to name is no licence to name something else: like a clean unit, a trial
+    whose concealed physics adds less than ``VISIBLE_EXCESS`` over its clean twin may be
+    given no id but its own."""
+    for t in diagnosed:
+        if not t.detectable:
+            truth = {e.value for e in t.case.cls.effects}
+            assert {e for e, _ in named(t.doc)} <= truth, t.case.label
+
+
+@pytest.mark.parametrize(("effect", "seed", "visible"), [
+    # Development trials (below the floor): a belt unit's coupling far above what the
+    # schedule excites, and a strong reluctance spring on a disk.
+    (Effect.LOAD_RESONANCE, 21, False),
+    (Effect.RELUCTANCE_TORQUE, 24, True),
+])
+def test_a_trials_excess_over_its_clean_twin_says_whether_there_was_anything_to_see(
+    effect: Effect, seed: int, visible: bool,
+) -> None:
+    excess = twin_excess(plan_trial(Case(TrialClass(frozenset({effect})), seed)))
+    if visible:
+        assert excess > 2 * VISIBLE_EXCESS
+    else:
+        # The twin's own noise is the same draw, so what is left is the fits' scatter.
+        assert abs(excess) < VISIBLE_EXCESS
 
 
 def test_the_extended_model_fits_held_out_data_better_whenever_it_models_more(
