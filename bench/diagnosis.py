@@ -94,7 +94,7 @@ def measure() -> list[BenchRecord]:
     done = [t for t in trials if REFUSED not in t.doc]
     controls = [t for t in trials if t.case.cls.control]
     unnamed = [t for t in trials if t.case.cls.out_of_vocabulary]
-    named = [t for t in done if t.doc["effects"]]
+    naming = [t for t in done if t.doc["effects"]]
     concealing = [t for t in trials if not t.case.cls.control]
     records += [
         BenchRecord("diagnosis_named_exactly_all_classes", _exact(detectable),
@@ -118,7 +118,7 @@ def measure() -> list[BenchRecord]:
                     "fraction", UNNAMED_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_named_with_better_held_out_fit",
                     statistics.fmean(1.0 if t.doc["fit"]["after"] < t.doc["fit"]["before"]
-                                     else 0.0 for t in named) if named else 1.0,
+                                     else 0.0 for t in naming) if naming else 1.0,
                     "fraction", 1.0, Goal.AT_LEAST),
         BenchRecord("diagnosis_refused_characterizations", float(len(refused)), "trials", 0.0,
                     Goal.AT_MOST),

@@ -976,8 +976,9 @@ def _observe(timeline: Timeline) -> Observations:
 
 def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
                ) -> tuple[Observations, Nominal]:
-    """The recording's observations and its nominal fit, exactly as the diagnosis takes them
-    (its held-out χ² is ``fit.before``): a clean twin's is what an effect adds to."""
+    """The recording's observations and its nominal fit, as the diagnosis first takes them
+    (``fit.before`` unless a chosen model's modes weight it again): fitted to a unit's
+    clean twin, what an effect adds to."""
     with threadpool_limits(limits=1, user_api="blas"):
         if progress is not None:
             progress("fitting the nominal model")
