@@ -81,8 +81,10 @@ def measure() -> list[BenchRecord]:
     print(confusion(trials), file=sys.stderr, flush=True)
     detectable = [t for t in trials if t.detectable]
     hidden = [t for t in trials if not t.detectable]
-    for t in hidden:
-        print(f"below detection: {describe(t)}", file=sys.stderr, flush=True)
+    for t in trials:  # every miss, reproducible from its label (Case(cls, seed))
+        if t.score < 1.0 and REFUSED not in t.doc:
+            kind = "miss" if t.detectable else "below detection"
+            print(f"{kind}: {describe(t)}", file=sys.stderr, flush=True)
     records: list[BenchRecord] = []
     for cls in CLASSES:
         mine = [t for t in detectable if t.case.cls == cls]
