@@ -350,6 +350,12 @@ def saturation_shapes(u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
     return 2.0 * u2 - u2 * u2, u2 * u2
 
 
+def saturation_slopes(u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                        NDArray[np.float64]]:
+    """d/d(u²) of ``saturation_shapes``, beside them so that the law is written once."""
+    return 2.0 - 2.0 * u2, 2.0 * u2
+
+
 def _blocks_eccentricity(spec: ModelSpec, obs: Observations) -> list[Block]:
     return [Block("eccentricity", 2, 0.0, -0.3, 0.3, BlockKind.LINEAR)]
 
@@ -873,9 +879,9 @@ class Model:
         dsat_b: NDArray[np.float64] | float = 0.0
         if lay.has("saturation"):
             w1, w2 = self._p(p, "saturation")
-            u2 = (m.i_a**2 + m.i_b**2) / self.largest_A**2
+            s1, s2 = saturation_slopes((m.i_a**2 + m.i_b**2) / self.largest_A**2)
             # d(Kt)/d(i) = d(Kt)/d(u²) · 2i/I_max²
-            g = -2.0 * (w1 * (2.0 - 2.0 * u2) + w2 * 2.0 * u2) / self.largest_A**2
+            g = -2.0 * (w1 * s1 + w2 * s2) / self.largest_A**2
             dsat_a, dsat_b = g * m.i_a, g * m.i_b
         d_ia = mod * (sat * pa + dsat_a * magnet)
         d_ib = mod * (sat * pb + dsat_b * magnet)

@@ -19,7 +19,13 @@ from station.core import Effect
 from station.diagnosis.diagnose import _transplant, fit_nominal, fit_spec, nominal_of
 from station.diagnosis.fit import fit, sigmas
 from station.diagnosis.groups import GROUP_ESTIMATES, GROUP_PARAMETERS
-from station.diagnosis.model import Model, ModelSpec, saturation_shapes, sawtooth_mean
+from station.diagnosis.model import (
+    Model,
+    ModelSpec,
+    saturation_shapes,
+    saturation_slopes,
+    sawtooth_mean,
+)
 from station.diagnosis.observations import Observations, observe
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
@@ -124,6 +130,10 @@ def test_the_saturation_group_can_only_take_torque_away_over_the_recorded_curren
     ends = saturation_shapes(np.array([0.0, step, 1.0 - step, 1.0]))
     assert (ends[0][3] - ends[0][2]) / step < 1e-3 < (ends[0][1] - ends[0][0]) / step
     assert (ends[1][1] - ends[1][0]) / step < 1e-3 < (ends[1][3] - ends[1][2]) / step
+    # The slopes the fit's Jacobian uses are the shapes' own derivatives.
+    ahead, behind = saturation_shapes(u2 + 1e-6), saturation_shapes(u2 - 1e-6)
+    for up, down, slope in zip(ahead, behind, saturation_slopes(u2), strict=True):
+        assert np.allclose((up - down) / 2e-6, slope, atol=1e-6)
 
 
 def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() -> None:
