@@ -291,9 +291,10 @@ class Trial:
         return self.excess is None or self.excess >= VISIBLE_EXCESS
 
 
-def twin_excess(plan: TrialPlan) -> float:
+def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
     """What the concealed physics adds to the nominal model's held-out χ² over the same
-    unit without it, recorded with the same schedule and noise.
+    unit without it, recorded with the same schedule and noise (``recorded`` is the trial's
+    own recording, as the diagnosis read it).
 
     This is how the issue measures an effect's size ("an excess of about 133 over its
     clean twin"). Both nominal fits are made here the same way (``nominal_of``): the
@@ -306,13 +307,10 @@ def twin_excess(plan: TrialPlan) -> float:
 
     twin = draw_unit(plan.case.seed, load=plan.unit.load, effects=frozenset(),
                      unnamed=frozenset())
-    held = []
-    for unit in (plan.unit, twin):
-        timeline = simulate_timeline(unit, plan.schedule, seed=plan.case.seed, loss=plan.loss,
-                                     substeps=PLANT_SUBSTEPS,
-                                     extra_metadata={"schedule": "characterization"})
-        held.append(held_out(nominal_of(timeline)[1].balanced))
-    mine, clean = held
+    clean_run = simulate_timeline(twin, plan.schedule, seed=plan.case.seed, loss=plan.loss,
+                                  substeps=PLANT_SUBSTEPS,
+                                  extra_metadata={"schedule": "characterization"})
+    mine, clean = (held_out(nominal_of(t)[1].balanced) for t in (recorded, clean_run))
     return mine.total - clean.total / max(clean.residuals.size, 1) * mine.residuals.size
 
 
@@ -320,6 +318,7 @@ def run_trial(case: Case, root: Path) -> Trial:
     """Record ``case`` under ``root`` (recordings and truth apart) and diagnose it blind.
     Sets STATION_HOME: run it in a worker process of its own."""
     # Imported here: the simulator side of this module must not need the diagnosis.
+    from station.analysis.reader import read_recording  # noqa: PLC0415
     from station.characterize import diagnose_recording  # noqa: PLC0415
 
     name = case.label.replace(":", "_").replace("@", "-")
@@ -341,7 +340,7 @@ def run_trial(case: Case, root: Path) -> Trial:
     excess = None
     if not case.cls.control and REFUSED not in doc and score(case.cls, doc) < 1.0:
         # Only a miss needs it: was there anything to see?
-        excess = twin_excess(plan)
+        excess = twin_excess(plan, read_recording(out))
     return Trial(case, doc, spent, plan.schedule.cycles * 1e-3, plan.unit.load.value, excess)
 
 

@@ -32,6 +32,7 @@ import pytest
 from station.core import Effect
 from station.sim.concealed import (
     CLASSES,
+    PLANT_SUBSTEPS,
     REFUSED,
     TRIAL_SEED_FLOOR,
     VISIBLE_EXCESS,
@@ -46,6 +47,7 @@ from station.sim.concealed import (
     twin_excess,
 )
 from station.sim.concealed import run_trial as run
+from station.sim.inprocess import simulate_timeline
 
 SMOKE_SCORE = 0.5
 """Mean score over one trial per class below which the diagnosis has surely regressed.
@@ -106,7 +108,10 @@ def test_physics_below_detection_is_given_no_id_it_does_not_have(diagnosed: list
 def test_a_trials_excess_over_its_clean_twin_says_whether_there_was_anything_to_see(
     effect: Effect, seed: int, visible: bool,
 ) -> None:
-    excess = twin_excess(plan_trial(Case(TrialClass(frozenset({effect})), seed)))
+    plan = plan_trial(Case(TrialClass(frozenset({effect})), seed))
+    recorded = simulate_timeline(plan.unit, plan.schedule, seed=seed, loss=plan.loss,
+                                 substeps=PLANT_SUBSTEPS)
+    excess = twin_excess(plan, recorded)
     if visible:
         assert excess > 2 * VISIBLE_EXCESS
     else:
