@@ -58,6 +58,7 @@ from station.diagnosis.fit import (
     fit,
     held_out,
     judge_parameters,
+    polish,
     screen,
     sigmas,
     solve_linear,
@@ -212,8 +213,11 @@ class Test:
 
     @property
     def significant(self) -> bool:
+        """Gains beyond noise, by a model whose added groups stay the physics they name
+        (none resting on a bound that makes it something else: ``Block.rejects``)."""
         return (self.chi2_gain > max(self.f_threshold, self.bic_threshold)
-                and self.held_gain > self.added * self.noise)
+                and self.held_gain > self.added * self.noise
+                and not self.larger.fit.rejected)
 
 
 @dataclass(frozen=True)
@@ -498,6 +502,12 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
                                       for v in GROUP_STARTS[e](model, unbent))], keep=2)
         if again.chi2 < result.chi2:
             result = again
+    if result.chi2 > base.chi2:
+        # Every start had its linear parameters solved again, which can lose the base's
+        # own point; a larger model must never fit worse than the one it extends.
+        kept = polish(model, start)
+        if kept.chi2 < result.chi2:
+            result = kept
     return result
 
 

@@ -82,6 +82,13 @@ class Fit:
     def value(self, name: str) -> NDArray[np.float64]:
         return self.params[self.model.layout.slices[name]]
 
+    @property
+    def rejected(self) -> tuple[str, ...]:
+        """Blocks resting on a bound their group may not rest on (``Block.rejects``)."""
+        return tuple(b.name for b in self.model.layout.blocks
+                     if any(side in b.rejects
+                            for side in self.active[self.model.layout.slices[b.name]]))
+
     def scalar(self, name: str) -> float:
         return float(self.value(name)[0])
 
@@ -172,23 +179,30 @@ def screen(model: Model, starts: list[NDArray[np.float64]]
     return screened
 
 
+def polish(model: Model, x0: NDArray[np.float64], max_nfev: int = _MAX_NFEV) -> Fit:
+    """Bounded least squares from ``x0`` as it is (``fit`` first re-solves every start's
+    linear parameters, which can move a start away from a point known to be good)."""
+    low, high = model.layout.bounds()
+    result = least_squares(
+        model.residuals, np.clip(x0, *_inside(model)), jac=lambda p: jacobian(model, p),
+        bounds=(low, high), x_scale="jac", method="trf", max_nfev=max_nfev, ftol=_FTOL,
+        xtol=_FTOL,
+    )
+    return Fit(model, result.x, result.fun, result.jac,
+               np.asarray(result.active_mask, dtype=np.int8))
+
+
 def fit(model: Model, starts: list[NDArray[np.float64]], *, keep: int = 2,
         max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None) -> Fit:
     """Bounded least squares from the ``keep`` most promising starts, and from every
     ``estimated`` one (a start the data themselves point to, which a ranking by χ² before
     the search could pass over); the best result."""
-    low, high = model.layout.bounds()
     best: Fit | None = None
     chosen = screen(model, starts)[:keep] + screen(model, estimated or [])
     for chi2, x0 in chosen:
         if not math.isfinite(chi2):
             continue
-        result = least_squares(
-            model.residuals, x0, jac=lambda p: jacobian(model, p), bounds=(low, high),
-            x_scale="jac", method="trf", max_nfev=max_nfev, ftol=_FTOL, xtol=_FTOL,
-        )
-        candidate = Fit(model, result.x, result.fun, result.jac,
-                        np.asarray(result.active_mask, dtype=np.int8))
+        candidate = polish(model, x0, max_nfev)
         if best is None or candidate.chi2 < best.chi2:
             best = candidate
     if best is None:

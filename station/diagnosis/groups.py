@@ -45,7 +45,7 @@ def _starts_lag(model: Model, p: NDArray[np.float64]) -> list[Starts]:
 
 
 def _starts_friction(model: Model, p: NDArray[np.float64]) -> list[Starts]:
-    return [{"log_friction_smoothing": [math.log(eps)]} for eps in (0.002, 0.02, 0.2, 2.0)]
+    return [{"log_friction_smoothing": [math.log(eps)]} for eps in (0.005, 0.05, 0.25)]
 
 
 def segment_delays(model: Model, p: NDArray[np.float64]
@@ -278,7 +278,7 @@ def _friction(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
         "coulomb_forward_sigma_percent": float(s[0]) * scale,
         "coulomb_reverse_percent_of_rated_holding_torque": float(v[1]) * scale,
         "coulomb_reverse_sigma_percent": float(s[1]) * scale,
-        "smoothing_relative_to_top_speed": math.exp(fit.scalar("log_friction_smoothing")),
+        "smoothing_relative_to_slowest_speed": math.exp(fit.scalar("log_friction_smoothing")),
         "note": "viscous friction is in the chain's damping (nominal)",
     }
     return out

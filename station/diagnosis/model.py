@@ -91,6 +91,10 @@ class Block:
     low: float = -np.inf
     high: float = np.inf
     kind: BlockKind = BlockKind.NONLINEAR
+    rejects: tuple[int, ...] = ()
+    """Bounds (−1 low, +1 high) a fit may not rest on and still be the group's physics:
+    a Coulomb friction smoothed past the slowest speed is a drag, a clock 5000 ppm off
+    or a current loop twenty periods late is something else the group stands in for."""
 
 
 @dataclass
@@ -305,14 +309,25 @@ def _blocks_reluctance(spec: ModelSpec, obs: Observations) -> list[Block]:
 def _blocks_resonance(spec: ModelSpec, obs: Observations) -> list[Block]:
     return [
         Block("coupling_fraction", 1, 0.5, 0.01, 0.99),
-        Block("log_coupling_hz", 1, _log(150.0), _log(5.0), _log(8000.0)),
+        Block("log_coupling_hz", 1, _log(150.0), _log(5.0), _log(8000.0), rejects=(-1, 1)),
         Block("coupling_damping_ratio", 1, 0.05, 0.0, 2.0),
     ]
 
 
 def _blocks_lag(spec: ModelSpec, obs: Observations) -> list[Block]:
     t_ms = obs.metadata.sync_period_s * 1e3
-    return [Block("current_lag_ms", 2, 0.5 * t_ms, 0.0, 20.0 * t_ms)]
+    return [Block("current_lag_ms", 2, 0.5 * t_ms, 0.0, 20.0 * t_ms, rejects=(1,))]
+
+
+FRICTION_SMOOTHING_MAX = 0.3
+"""Coulomb friction's smoothing, at most this fraction of the slowest mean load speed.
+
+Coulomb friction is a torque that does not change with speed once the load moves: its
+smoothed sign must have settled at every hold. A tanh still rising at the slowest
+hold is a drag that grows with speed and adds ripple damping at low speeds, which any
+chain the nominal model got slightly wrong can use (a clean belt unit was named
+friction at 0.8 % of holding torque, smoothed over half its top speed), while true
+friction fits smoothings of a few percent of the slowest speed."""
 
 
 def _blocks_friction(spec: ModelSpec, obs: Observations) -> list[Block]:
@@ -320,12 +335,13 @@ def _blocks_friction(spec: ModelSpec, obs: Observations) -> list[Block]:
     return [
         # Coulomb levels (Kt units, at the load) forward and reverse: never negative.
         Block("friction_coulomb", 2, 0.0, 0.0, 5.0, BlockKind.LINEAR),
-        Block("log_friction_smoothing", 1, _log(0.02), _log(1e-4), _log(10.0)),
+        Block("log_friction_smoothing", 1, _log(0.05), _log(1e-4),
+              _log(FRICTION_SMOOTHING_MAX), rejects=(1,)),
     ]
 
 
 def _blocks_clock(spec: ModelSpec, obs: Observations) -> list[Block]:
-    drift = Block("clock_drift_ppm", 1, 0.0, -5000.0, 5000.0)
+    drift = Block("clock_drift_ppm", 1, 0.0, -5000.0, 5000.0, rejects=(-1, 1))
     if not spec.clock_wraps:
         return [drift]  # a constant part would be the sensor's delay again
     return [drift, Block("clock_phase", 1, 0.5, -0.5, 1.5)]
@@ -742,9 +758,9 @@ class Model:
 
         A smoothed sign, tanh(v/ε), splits into a forward part (1 + tanh)/2 and a
         reverse part (1 − tanh)/2 so the two directions may differ; ε is relative to
-        the fastest mean load speed of the recording.
+        the slowest mean load speed of the recording (``FRICTION_SMOOTHING_MAX``).
         """
-        scale = float(np.max(np.abs(self.obs.load_speed)))
+        scale = float(np.min(np.abs(self.obs.load_speed)))
         eps = math.exp(self._scalar(p, "log_friction_smoothing")) * scale
         t = np.tanh(velocity / eps)
         dt = (1.0 - t * t) / eps
