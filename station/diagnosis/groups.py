@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -48,17 +49,43 @@ def _starts_friction(model: Model, p: NDArray[np.float64]) -> list[Starts]:
     return [{"log_friction_smoothing": [math.log(eps)]} for eps in (0.005, 0.05, 0.25)]
 
 
-def segment_delays(model: Model, p: NDArray[np.float64]
+DELAY_PROBE_S = 1e-5
+"""The extra delay a segment's data are shifted by to difference the model's error: far
+below a SYNC period and below a radian at every order."""
+
+
+def _shifted(model: Model, delay: NDArray[np.float64]) -> Model:
+    """The model on data advanced by ``delay`` (s, per segment): each order k turned by
+    e^{jkωd}, which undoes a sensor that sampled that much late."""
+    obs = model.obs
+    turn = np.exp(1j * (obs.omega * delay)[:, None] * model.k[None, :])
+    beyond = obs.beyond
+    if beyond is not None:
+        kb = np.arange(obs.orders + 1, obs.orders + 1 + beyond.shape[1], dtype=np.float64)
+        beyond = beyond * np.exp(1j * (obs.omega * delay)[:, None] * kb[None, :])
+    return Model(model.spec, replace(obs, phasors=obs.phasors * turn, beyond=beyond))
+
+
+def segment_delays(model: Model, p: NDArray[np.float64], steps: int = 2
                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Each segment's extra delay (s) against what the model at ``p`` predicts, and its
-    weight: the phase of measured over predicted phasors, fitted as k·ω·d over orders."""
-    measured = model.obs.phasors
-    predicted = model.predicted(p)
-    w_order = np.abs(predicted) ** 2 / np.maximum(model.obs.sigma, 1e-12) ** 2
-    kw = model.obs.omega[:, None] * model.k[None, :]
-    phase = np.angle(measured * np.conj(predicted))
-    weight = np.sum(w_order * kw**2, axis=1)
-    delay = -np.sum(w_order * phase * kw, axis=1) / np.maximum(weight, 1e-300)
+    """Each segment's extra delay (s) against the model at ``p``, and its weight (the
+    information the segment carries about it): Gauss-Newton steps on the model's own
+    weighted error, the segment's data shifted in time.
+
+    The phase of measured over predicted phasors is no measure of it: the model's
+    prediction is an equation error evaluated on the measured motion, so below the
+    rotor's mode it follows the data, and a drifting clock's sawtooth came out at half
+    its size (0.10 of a period per hold against the plant's 0.22 on a development
+    trial), too little for its rate to stand out of the periodogram.
+    """
+    delay = np.zeros(model.obs.count)
+    weight = np.zeros(model.obs.count)
+    for _ in range(steps):
+        here = _shifted(model, delay)
+        base = here.weighted_error(p)
+        slope = (_shifted(model, delay + DELAY_PROBE_S).weighted_error(p) - base) / DELAY_PROBE_S
+        weight = np.sum(np.abs(slope) ** 2, axis=1)
+        delay = delay - np.sum((np.conj(slope) * base).real, axis=1) / np.maximum(weight, 1e-300)
     return delay, weight
 
 

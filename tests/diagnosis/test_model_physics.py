@@ -26,7 +26,13 @@ from station.diagnosis.diagnose import (
     nominal_of,
 )
 from station.diagnosis.fit import fit, held_out, sigmas
-from station.diagnosis.groups import GROUP_ESTIMATES, GROUP_PARAMETERS
+from station.diagnosis.groups import (
+    CLOCK_PEAKS,
+    GROUP_ESTIMATES,
+    GROUP_PARAMETERS,
+    _starts_clock,
+    segment_delays,
+)
 from station.diagnosis.model import (
     Model,
     ModelSpec,
@@ -71,6 +77,21 @@ def _truth_start(model: Model, case: Case) -> np.ndarray:
     return p
 
 
+def _added(case: Case, effect: Effect) -> Test:
+    """The case's nominal fit, tested against the same with ``effect``'s group added (as
+    the diagnosis fits and compares them)."""
+    plan = plan_trial(case)
+    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
+                                 substeps=PLANT_SUBSTEPS)
+    with threadpool_limits(limits=1, user_api="blas"):
+        _, nominal = nominal_of(timeline)
+        base = nominal.balanced
+        spec = replace(base.model.spec, effects=frozenset({effect}))
+        larger = fit_spec(base.model.obs, spec, base, nominal.free)
+        return compare(Candidate(base.model.spec, base, held_out(base)),
+                       Candidate(spec, larger, held_out(larger)))
+
+
 @pytest.mark.parametrize("with_higher_orders", [True, False])
 def test_a_strong_flux_ripple_is_described_to_the_noise_only_with_the_higher_orders_swing(
     with_higher_orders: bool,
@@ -106,6 +127,35 @@ def test_a_drifting_sensor_clock_is_found_from_the_recording_alone() -> None:
         result = fit(model, starts, keep=len(starts))
     assert result.scalar("clock_drift_ppm") == pytest.approx(truth, abs=5.0)
     assert result.chi2 < 0.5 * nominal.chi2
+
+
+def test_a_clocks_sawtooth_is_measured_at_its_full_size_so_its_rate_stands_out() -> None:
+    """The segments' delays are Gauss-Newton steps on the model's own error: the phase of
+    measured over the equation error's prediction, which follows the data below the
+    rotor's mode, measured about half the sawtooth, and this trial's rate (−256 ppm,
+    few segments) was not among the periodogram's twelve peaks. Between the holds of one
+    condition the delay must now advance as the plant's clock does."""
+    obs, case = _observed(Effect.SENSOR_CLOCK_DRIFT, 45)
+    sensor = plan_trial(case).unit.sensor
+    with threadpool_limits(limits=1, user_api="blas"):
+        nominal = fit_nominal(obs).balanced
+        model = Model(replace(nominal.model.spec,
+                              effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})), nominal.model.obs)
+        start = _transplant(model, nominal)
+        delay, _ = segment_delays(model, start)
+        peaks = _starts_clock(model, start, CLOCK_PEAKS)
+    assert peaks[0]["clock_drift_ppm"][0] == pytest.approx(sensor.clock_drift_ppm, abs=10.0)
+    period = obs.metadata.sync_period_s
+    n = obs.span.mean(axis=1)
+    truth = (sensor.sample_phase - n * sensor.clock_drift_ppm * 1e-6) % 1.0
+    steps, expected = [], []
+    for c in range(len(obs.conditions)):
+        mine = np.flatnonzero(obs.condition == c)
+        steps += list(np.diff(delay[mine] / period))
+        expected += list(np.diff(truth[mine]))
+    # Wrapped into one period: a step across the sawtooth's wrap is a step all the same.
+    gap = (np.array(steps) - np.array(expected) + 0.5) % 1.0 - 0.5
+    assert np.median(np.abs(gap)) < 0.05, gap
 
 
 @pytest.mark.parametrize("drift_ppm", [-2400.0, -37.0, 0.0, 5.0, 412.0])
@@ -150,16 +200,9 @@ def test_the_saturation_group_can_only_take_torque_away_over_the_recorded_curren
 def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() -> None:
     """The plant's 1/√(1 + (I/I_s)²) is not the model's law; the fall between the lowest
     and the largest current recorded must still come out within 4σ of the plant's."""
-    plan = plan_trial(Case(TrialClass(frozenset({Effect.MAGNETIC_SATURATION})), 24))
-    motor = plan.unit.motor
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=24, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
-    spec_effects = frozenset({Effect.MAGNETIC_SATURATION})
-    with threadpool_limits(limits=1, user_api="blas"):
-        _, nominal = nominal_of(timeline)
-        result = fit_spec(nominal.balanced.model.obs,
-                          replace(nominal.balanced.model.spec, effects=spec_effects),
-                          nominal.balanced, nominal.free)
+    case = Case(TrialClass(frozenset({Effect.MAGNETIC_SATURATION})), 24)
+    motor = plan_trial(case).unit.motor
+    result = _added(case, Effect.MAGNETIC_SATURATION).larger.fit
     model = result.model
     lowest = float(np.min(model.obs.amplitude_A))
     fitted = GROUP_PARAMETERS[Effect.MAGNETIC_SATURATION](result, sigmas(result))
@@ -174,29 +217,16 @@ def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() ->
     assert abs(measured - plant) < 4.0 * sigma, (measured, plant, sigma)
 
 
-def _friction_test(case: Case) -> Test:
-    plan = plan_trial(case)
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
-    with threadpool_limits(limits=1, user_api="blas"):
-        _, nominal = nominal_of(timeline)
-        base = nominal.balanced
-        spec = replace(base.model.spec, effects=frozenset({Effect.FRICTION}))
-        larger = fit_spec(base.model.obs, spec, base, nominal.free)
-        return compare(Candidate(base.model.spec, base, held_out(base)),
-                       Candidate(spec, larger, held_out(larger)))
-
-
 def test_a_drag_smoothed_over_the_slowest_speed_is_not_taken_for_coulomb_friction() -> None:
     """A clean belt unit whose nominal chain is a little off gains χ² ≈ 30 from a friction
     group smoothed as far as it may go (a drag rising with speed, not Coulomb friction);
     that fit rests on the smoothing's ceiling and is not significant. Friction concealed
     in a belt unit fits a smoothing well inside, and is."""
-    clean = _friction_test(Case(TrialClass(frozenset()), 41))
+    clean = _added(Case(TrialClass(frozenset()), 41), Effect.FRICTION)
     assert clean.larger.fit.rejected == ("log_friction_smoothing",)
     assert clean.chi2_gain > max(clean.f_threshold, clean.bic_threshold)
     assert not clean.significant
-    concealed = _friction_test(Case(TrialClass(frozenset({Effect.FRICTION})), 26))
+    concealed = _added(Case(TrialClass(frozenset({Effect.FRICTION})), 26), Effect.FRICTION)
     assert concealed.larger.fit.rejected == ()
     assert concealed.significant
 
@@ -206,12 +236,5 @@ def test_a_group_added_never_leaves_the_fit_worse_than_the_model_it_extends() ->
     with a soft coupling that lost the nominal's own point and ended χ² 12 worse than the
     nominal, although saturation at zero is the nominal exactly."""
     case = Case(TrialClass(frozenset({Effect.LOAD_RESONANCE})), 43)
-    plan = plan_trial(case)
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
-    with threadpool_limits(limits=1, user_api="blas"):
-        _, nominal = nominal_of(timeline)
-        base = nominal.balanced
-        spec = replace(base.model.spec, effects=frozenset({Effect.MAGNETIC_SATURATION}))
-        larger = fit_spec(base.model.obs, spec, base, nominal.free)
-    assert larger.chi2 <= base.chi2 + 1e-6 * base.chi2
+    test = _added(case, Effect.MAGNETIC_SATURATION)
+    assert test.larger.fit.chi2 <= test.smaller.fit.chi2 * (1.0 + 1e-6)
