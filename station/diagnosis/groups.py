@@ -58,12 +58,11 @@ def _shifted(model: Model, delay: NDArray[np.float64]) -> Model:
     """The model on data advanced by ``delay`` (s, per segment): each order k turned by
     e^{jkωd}, which undoes a sensor that sampled that much late."""
     obs = model.obs
-    turn = np.exp(1j * (obs.omega * delay)[:, None] * model.k[None, :])
     beyond = obs.beyond
-    if beyond is not None:
-        kb = np.arange(obs.orders + 1, obs.orders + 1 + beyond.shape[1], dtype=np.float64)
-        beyond = beyond * np.exp(1j * (obs.omega * delay)[:, None] * kb[None, :])
-    return Model(model.spec, replace(obs, phasors=obs.phasors * turn, beyond=beyond))
+    if model.beyond is not None:
+        beyond = model.beyond * np.exp(model.jw_beyond * delay[:, None])
+    return Model(model.spec, replace(obs, phasors=obs.phasors * np.exp(model.jw * delay[:, None]),
+                                     beyond=beyond))
 
 
 def segment_delays(model: Model, p: NDArray[np.float64], steps: int = 2
