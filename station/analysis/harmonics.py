@@ -84,18 +84,35 @@ def _design(angle: NDArray[np.float64], orders: int) -> NDArray[np.float64]:
     return np.column_stack([np.ones_like(angle), np.cos(phase), np.sin(phase)])
 
 
+def _decay_design(t: NDArray[np.float64], poles: Sequence[complex]) -> NDArray[np.float64]:
+    """Columns e^{σt}·cos ωt and e^{σt}·sin ωt per pole σ + jω (only the first if real)."""
+    columns = []
+    for pole in poles:
+        envelope = np.exp(pole.real * t)
+        columns.append(envelope * np.cos(pole.imag * t))
+        if pole.imag != 0.0:
+            columns.append(envelope * np.sin(pole.imag * t))
+    return np.column_stack(columns)
+
+
 def demodulate(
     signal: NDArray[np.float64],
     angle: NDArray[np.float64],
     samples_per_period: float,
     *,
     orders: int = DEFAULT_ORDERS,
+    decays: Sequence[complex] = (),
+    decay_from: float = 0.0,
 ) -> Harmonics:
     """Least-squares phasors of orders 1..``orders`` referenced to ``angle``, fitted
     jointly with the orders up to ``JOINT_ORDERS``.
 
     ``signal`` holds NaN where a sample is missing or saturated. Orders at or
     above the Nyquist rate of the sampling are not fitted (they would alias).
+    ``decays`` are poles per sample (λ·T, one of each conjugate pair) of a transient
+    still ringing, whose change happened ``decay_from`` samples before the first:
+    each is fitted with a free amplitude and phase, so it biases no phasor and costs
+    the precision it shares with them.
     """
     if signal.shape != angle.shape or signal.ndim != 1:
         raise ValueError(f"signal {signal.shape} and angle {angle.shape} must match (1-D)")
@@ -105,19 +122,22 @@ def demodulate(
     ok = ~np.isnan(signal)
     used = int(ok.sum())
     x = _design(angle[ok], fitted)
+    if decays:
+        x = np.column_stack([x, _decay_design(
+            (np.flatnonzero(ok) + decay_from).astype(np.float64), decays)])
     if used <= x.shape[1]:
         raise ValueError(f"{used} samples cannot determine {x.shape[1]} coefficients")
     y = signal[ok]
     coef, *_ = np.linalg.lstsq(x, y, rcond=None)
     residual = y - x @ coef
-    a, b = coef[1 : fitted + 1], coef[fitted + 1 :]
+    a, b = coef[1 : fitted + 1], coef[fitted + 1 : 2 * fitted + 1]
     phasors = np.full(orders, np.nan + 0j, dtype=np.complex128)
     phasors[:kept] = (a - 1j * b)[:kept]
     dof = used - x.shape[1]
     sigma2 = float(residual @ residual) / dof
-    white = np.diag(np.linalg.inv(x.T @ x))
+    white = np.diag(np.linalg.pinv(x.T @ x))
     unit = np.full(orders, np.nan)
-    unit[:kept] = (white[1 : fitted + 1] + white[fitted + 1 :])[:kept]
+    unit[:kept] = (white[1 : fitted + 1] + white[fitted + 1 : 2 * fitted + 1])[:kept]
     variance = sigma2 * unit
     periods = int(signal.size // samples_per_period)
     if periods >= _MIN_PERIODS_FOR_SCATTER:

@@ -145,7 +145,8 @@ def measure(
         window = signal[seg.start : seg.stop]
         spp = seg.samples_per_period
         try:
-            h = demodulate(window, seg.electrical_angle(), spp, orders=options.orders)
+            h = demodulate(window, seg.electrical_angle(), spp, orders=options.orders,
+                           decays=seg.ringing, decay_from=seg.start - seg.held_from)
         except ValueError as exc:
             rejected.append(Rejected(seg.start, seg.stop, f"cannot demodulate: {exc}"))
             continue

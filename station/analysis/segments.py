@@ -43,10 +43,10 @@ MIN_PERIODS = 3
 """A segment shorter than this many electrical periods carries no usable phasor."""
 
 _SETTLE_BLOCK = 3
+"""Periods averaged when deciding that the rotor has settled."""
 
 SETTLE_ORDERS = (1, 2)
 """Orders whose per-period phasors decide settling unless the caller names others."""
-"""Periods averaged when deciding that the rotor has settled."""
 
 _SETTLE_SIGMAS = 3.0
 _OUTLIER_SIGMAS = 5.0
@@ -63,12 +63,53 @@ class Settling(StrEnum):
     DATA = "data"  # per-period phasors reached their final level (needs 6 periods)
     GIVEN = "given"  # a settling time given by the caller (``settle_periods``)
     MODEL = "model"  # too short to judge: a time from a model of the chain's decay
+    RINGING = "ringing"  # the chain's slowest modes still ring: fitted out as decays
 
 
-SettleFallback = Callable[[int, float], float | None]
-"""For a hold too short to judge its own settling: (amplitude mA, signed electrical Hz)
-to the seconds after the hold's start that its transient needs, or None when the
-chain cannot settle within such a hold."""
+@dataclass(frozen=True)
+class ChainDecay:
+    """How a model of the chain forgets a change: its modes' poles, and how many of their
+    e-foldings make a transient negligible.
+
+    A hold shorter than its slowest mode's decay still carries the harmonics: the
+    transient is a sum of decaying exponentials at the chain's poles, so a segment can
+    start before they have died out if those poles are fitted beside the harmonics
+    (a free amplitude and phase each). The harmonics then cost the precision they share
+    with the decays, and their variance says so.
+    """
+
+    poles: tuple[complex, ...]
+    """Poles λ (1/s) of the modes the recording resolves, one of each conjugate pair."""
+    e_foldings: float
+    floor_s: float
+    """Seconds every change needs whatever the modes (the faster physics around them)."""
+
+    def _seconds(self, pole: complex) -> float:
+        return self.e_foldings / -pole.real
+
+    def settle_s(self) -> float:
+        """Seconds until every mode has decayed."""
+        return max([self.floor_s, *(self._seconds(p) for p in self.poles)])
+
+    def plan(self, available_s: float, needed_s: float) -> tuple[float, tuple[complex, ...]]:
+        """Seconds to wait after the change, and the poles to fit out as still ringing.
+
+        Waiting for every mode is preferred; when that would leave less than
+        ``needed_s`` of the ``available_s``, the slowest modes are fitted out, as few as
+        leave enough (all of them at the worst, after ``floor_s``).
+        """
+        slowest_first = sorted(self.poles, key=self._seconds, reverse=True)
+        for n in range(len(slowest_first) + 1):
+            wait = max([self.floor_s, *(self._seconds(p) for p in slowest_first[n:])])
+            if available_s - wait >= needed_s or n == len(slowest_first):
+                return wait, tuple(slowest_first[:n])
+        raise AssertionError("unreachable: the last plan fits every pole")
+
+
+SettleFallback = Callable[[int, float], ChainDecay | None]
+"""For a hold too short to judge its own settling, or one whose data never settle:
+(amplitude mA, signed electrical Hz) to how the chain decays, or None when it cannot
+(a mode that does not decay)."""
 
 
 @dataclass(frozen=True)
@@ -92,6 +133,9 @@ class Segment:
     periods: int
     microsteps_per_fullstep: int
     settling: Settling = Settling.DATA
+    ringing: tuple[complex, ...] = ()
+    """Poles still ringing at ``start``, per sample (λ·T): decays from ``held_from`` to fit
+    out beside the harmonics."""
 
     @property
     def samples(self) -> int:
@@ -345,6 +389,7 @@ def steady_segments(
             angle = (2 * math.pi / cycle) * np.mod(p0 + slope * n, cycle)
             settling = Settling.GIVEN
             shortest = MIN_PERIODS
+            ringing: tuple[complex, ...] = ()
             if settle_periods is None:
                 settling = Settling.DATA
                 window, present = signal[a:b], ok[a:b]
@@ -354,17 +399,28 @@ def steady_segments(
                 first = settled_period(phasors)
                 held = (b - a) / spp
                 too_short = held < 2 * _SETTLE_BLOCK
-                if first is None and too_short and settle_fallback is not None:
-                    signed_hz = math.copysign(hz, slope)
-                    settle_s = settle_fallback(hold.amplitude_mA, signed_hz)
-                    if settle_s is None:
-                        rejected.append(Rejected(a, b, (
-                            f"a hold of {held:.1f} periods at {signed_hz:+.1f} Hz ends before the "
-                            "chain's slowest mode has decayed")))
+                signed_hz = math.copysign(hz, slope)
+                decay = (None if settle_fallback is None
+                         else settle_fallback(hold.amplitude_mA, signed_hz))
+                if first is None and settle_fallback is not None and decay is None:
+                    rejected.append(Rejected(a, b, (
+                        f"a hold of {held:.1f} periods at {signed_hz:+.1f} Hz ends before the "
+                        "chain's slowest mode has decayed")))
+                    continue
+                if first is None and decay is not None:
+                    # A short hold, or one whose data never settle: the chain's model says
+                    # how long to wait, and which of its modes must be fitted out instead.
+                    shortest = 1 if too_short else MIN_PERIODS
+                    wait_s, ringing = decay.plan(
+                        (b - hold.start) * period_s, shortest * spp * period_s)
+                    if not too_short and not ringing:
+                        # The model sees nothing slow where the data do: trust the data.
+                        rejected.append(Rejected(a, b, "the rotor did not settle within the hold"))
                         continue
                     # The transient runs from the hold's change, not from the steady stretch.
-                    skip = max(0.0, settle_s / period_s - (a - hold.start))
-                    settling, shortest = Settling.MODEL, 1
+                    skip = max(0.0, wait_s / period_s - (a - hold.start))
+                    settling = Settling.RINGING if ringing else Settling.MODEL
+                    ringing = tuple(p * period_s for p in ringing)
                 elif first is None:
                     reason = (
                         f"a steady stretch of {held:.1f} periods is too short to judge settling "
@@ -376,17 +432,18 @@ def steady_segments(
                     continue
                 else:
                     skip = first * spp
-                    if settle_fallback is not None:
+                    if decay is not None:
                         # A lightly damped mode rings on at orders the data test cannot
-                        # watch closely enough; where the model says it needs longer, wait.
-                        settle_s = settle_fallback(hold.amplitude_mA, math.copysign(hz, slope))
-                        if settle_s is not None:
-                            floor = settle_s / period_s - (a - hold.start)
-                            # Not at the cost of the hold: a model that wants longer than
-                            # the hold leaves (less than three periods) is not trusted over
-                            # the data's own judgement.
-                            if skip < floor <= b - a - MIN_PERIODS * spp:
-                                skip, settling = floor, Settling.MODEL
+                        # watch closely enough; where the model says it needs longer, wait,
+                        # and where the hold is too short for that, fit the ringing out.
+                        wait_s, ringing = decay.plan(
+                            (b - hold.start) * period_s, MIN_PERIODS * spp * period_s)
+                        floor = wait_s / period_s - (a - hold.start)
+                        if ringing:
+                            skip, settling = max(skip, floor), Settling.RINGING
+                            ringing = tuple(p * period_s for p in ringing)
+                        elif skip < floor:
+                            skip, settling = floor, Settling.MODEL
             else:
                 skip = settle_periods * spp
             # Half a sample of slack: the fitted speed is off in its last digits, and a hold
@@ -412,6 +469,7 @@ def steady_segments(
                     periods=periods,
                     microsteps_per_fullstep=m,
                     settling=settling,
+                    ringing=ringing,
                 )
             )
     return segments, rejected

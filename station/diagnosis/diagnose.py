@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from station.analysis.segments import SettleFallback
+from station.analysis.segments import ChainDecay, SettleFallback
 from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, Effect
 from station.diagnosis.axes import AxisCoupling, axis_couplings, with_axes_checked
@@ -112,6 +112,11 @@ PRIOR_SETTLE_S = 0.12
 """Before any chain is known (no hold was long enough to judge its own settling), a
 short hold is trusted after this long: the rotor's own mode on its magnetic spring
 decays within tens of milliseconds on every unit the station has seen."""
+
+RINGING_FLOOR_S = 0.02
+"""Seconds a hold is waited for even when the chain's modes are fitted out as ringing:
+what the chain's model leaves out (the current loop, the sensor's filter, hundreds of
+hertz and well damped) has decayed by then."""
 
 # The starting grid of the nominal chain (Hz, ratio): wide enough for any fixture.
 ROTOR_HZ_GRID = (25.0, 45.0, 80.0, 140.0, 250.0, 450.0, 800.0)
@@ -350,6 +355,7 @@ class Diagnosis:
             "conditions": [c.as_dict() for c in obs.conditions],
             "segments": obs.count,
             "segments_settled_by_model": obs.model_settled,
+            "segments_ringing": obs.ringing,
             "skipped": [s.as_dict() for s in obs.skipped],
             "orders": obs.orders,
             "warnings": list(self.warnings),
@@ -513,8 +519,8 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
 
 # --------------------------------------------------------------------------- settling
 def settle_fallback(nominal: Fit) -> SettleFallback:
-    """Seconds the fitted chain needs to forget a change, per condition (None: longer
-    than any hold could wait).
+    """How the fitted chain forgets a change, per condition (None: a mode that does not
+    decay).
 
     Only modes the recording can resolve count: below twice the highest harmonic it
     analyses. A mode far above (a stiff belt the data barely see) has a damping the fit
@@ -526,23 +532,28 @@ def settle_fallback(nominal: Fit) -> SettleFallback:
               for c, r in zip(model.obs.conditions, rho, strict=True)}
     top = 2.0 * model.obs.orders * float(np.max(np.abs(model.obs.omega))) / (2 * math.pi)
 
-    def settle(amplitude_mA: int, electrical_hz: float) -> float | None:
+    def settle(amplitude_mA: int, electrical_hz: float) -> ChainDecay | None:
         angle = angles.get((amplitude_mA, round(electrical_hz, 1)), 0.0)
-        modes = model.modes(nominal.params, amplitude_mA / 1000.0, angle)
-        rates = [2 * math.pi * f * z for f, z in modes if 0 < f <= top]
-        if not rates:
-            return PRIOR_SETTLE_S
-        slowest = min(rates)
-        if slowest <= 0:
+        modes = [(f, z) for f, z in model.modes(nominal.params, amplitude_mA / 1000.0, angle)
+                 if 0 < f <= top]
+        if not modes:
+            return _prior_settle(amplitude_mA, electrical_hz)
+        if any(z <= 0 for _, z in modes):
             return None
-        seconds = SETTLE_E_FOLDINGS / slowest
-        return seconds if seconds < 5.0 else None
+        poles = tuple(_pole(f, z) for f, z in modes)
+        return ChainDecay(poles, SETTLE_E_FOLDINGS, RINGING_FLOOR_S)
 
     return settle
 
 
-def _prior_settle(amplitude_mA: int, electrical_hz: float) -> float:
-    return PRIOR_SETTLE_S
+def _pole(hz: float, damping: float) -> complex:
+    """The upper pole of an underdamped mode (``Model.modes`` lists no other kind)."""
+    wn = 2 * math.pi * hz
+    return complex(-damping * wn, wn * math.sqrt(1.0 - damping * damping))
+
+
+def _prior_settle(amplitude_mA: int, electrical_hz: float) -> ChainDecay:
+    return ChainDecay((), SETTLE_E_FOLDINGS, PRIOR_SETTLE_S)
 
 
 # --------------------------------------------------------------------------- locating
@@ -997,7 +1008,8 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
         obs = with_axes_checked(observe(timeline, settle_fallback=settle_fallback(fits.free)))
         if obs.segments != first.segments:
             if progress is not None:
-                progress(f"segments settled by the fitted chain: {obs.model_settled}")
+                progress(f"segments settled by the fitted chain: {obs.model_settled}, "
+                         f"with its ringing fitted out: {obs.ringing}")
             fits = fit_nominal(obs, previous=fits)
         return obs, fits
 
@@ -1079,6 +1091,10 @@ def diagnose_observations(obs: Observations, progress: Callable[[str], None] | N
     if obs.model_settled:
         warnings.append(f"{obs.model_settled} segments come from holds too short to judge "
                         "their own settling; their start is the fitted chain's decay time")
+    if obs.ringing:
+        warnings.append(f"{obs.ringing} segments come from holds shorter than the chain's "
+                        "slowest decay; its modes' ringing was fitted out beside the harmonics, "
+                        "whose σ includes what that costs")
     return Diagnosis(
         observations=obs,
         nominal=base,

@@ -180,6 +180,11 @@ class Observations:
         """Segments whose settling came from the chain's model (too short to judge)."""
         return sum(1 for s in self.segments if s.settling is Settling.MODEL)
 
+    @property
+    def ringing(self) -> int:
+        """Segments that start while the chain's slowest modes still ring (fitted out)."""
+        return sum(1 for s in self.segments if s.settling is Settling.RINGING)
+
     def subset(self, keep: NDArray[np.bool_]) -> Observations:
         """The segments where ``keep`` is true, conditions renumbered."""
         used = sorted(set(self.condition[keep].tolist()))
@@ -251,6 +256,7 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     rows: list[tuple[int, Measured]] = []
     period = timeline.sync_period_s
     skipped = [_skipped(r, period) for r in rejected]
+    clipped_n = sparse_n = 0
     for condition in conditions:
         key = ConditionKey(condition.amplitude_mA, condition.electrical_hz)
         usable = []
@@ -258,9 +264,11 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
             where = (m.segment.start * period, m.segment.stop * period)
             clipped = m.saturated / max(m.segment.samples, 1)
             if not np.all(np.isfinite(m.harmonics.phasors[:orders])):
+                sparse_n += 1
                 skipped.append(Skipped(
                     *where, f"{key.label()}: too few samples per period for order {orders}"))
             elif clipped > MAX_CLIPPED:
+                clipped_n += 1
                 skipped.append(Skipped(*where, (
                     f"{key.label()}: {100 * clipped:.0f} % of the samples clipped at the "
                     f"sensor's full scale (more than {100 * MAX_CLIPPED:.0f} %): record with "
@@ -273,6 +281,14 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
         rows.extend((len(keys) - 1, m) for m in usable)
     segs_all = [m.segment for _, m in rows]
     why = "; ".join(sorted({r.reason for r in rejected}))
+    if clipped_n:
+        # A recording clipped at every fast speed needs another range, not another schedule.
+        why += (f"; {clipped_n} settled segment(s) clipped at the sensor's full scale in more "
+                f"than {100 * MAX_CLIPPED:.0f} % of their samples: record with a larger range")
+    if sparse_n:
+        why += (f"; {sparse_n} settled segment(s) with too few samples per period for order "
+                f"{orders}: record at lower speeds")
+    why = why.removeprefix("; ")
     _refuse_unless_characterization(segs_all, period, len(keys), why)
     rows.sort(key=lambda row: row[1].segment.start)
     segs = [m.segment for _, m in rows]
@@ -332,7 +348,8 @@ def _other_axes(timeline: Timeline, segments: list[Segment], orders: int
             window = window - np.polynomial.polynomial.polyval(t, trend)
             window[~present] = np.nan
             spp = seg.samples_per_period
-            h = demodulate(window, seg.electrical_angle(), spp, orders=orders)
+            h = demodulate(window, seg.electrical_angle(), spp, orders=orders,
+                           decays=seg.ringing, decay_from=seg.start - seg.held_from)
             found = np.isfinite(h.phasors)
             phasors[i, found] = h.phasors[found]
             sigma[i, found] = np.sqrt(h.variance[found])

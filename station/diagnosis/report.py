@@ -449,7 +449,12 @@ def _skipped_section(d: Diagnosis) -> str:
     settled = obs.model_settled
     head = (f"<p>{_e(obs.count)} segments used, {_e(settled)} of them from holds too short "
             "to judge their own settling (their start is the fitted chain's decay time and "
-            "their σ is what the harmonics' own scatter says).</p>")
+            "their σ is what the harmonics' own scatter says)")
+    if obs.ringing:
+        head += (f", {_e(obs.ringing)} from holds shorter than the chain's slowest decay (its "
+                 "modes' ringing fitted out beside the harmonics, their σ including what that "
+                 "costs)")
+    head += ".</p>"
     if not obs.skipped:
         return head + "<p>No stretch of steady motion was skipped.</p>"
     rows = [_cells(_e(_num(s.start_s, 4)), _e(_num(s.stop_s, 4)), _e(s.reason),

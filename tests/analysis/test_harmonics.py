@@ -145,6 +145,28 @@ def test_reported_variance_matches_the_scatter_over_noise_seeds(pole: float) -> 
     assert np.all(np.abs(errors.mean(axis=0)) < 4 * np.sqrt(empirical / trials))
 
 
+def test_a_transient_at_known_poles_is_fitted_out_and_costs_precision() -> None:
+    """A mode at 37 Hz (SPP 50 at 1 kHz: between orders 1 and 2) decaying over the
+    segment, from a change 40 samples before its first."""
+    angle = _angle(round(6 * SPP))
+    pole = complex(-0.004, 2 * math.pi * 37.0 / 1000.0)
+    t = 40.0 + np.arange(angle.size)
+    ring = 0.6 * np.exp(pole.real * t) * np.cos(pole.imag * t + 0.3)
+    signal = _drop(_signal(angle, CONTENT) + ring, 0.10, 3)
+    fitted = demodulate(signal, angle, SPP, decays=(pole,), decay_from=40.0)
+    for k in range(1, DEFAULT_ORDERS + 1):
+        assert fitted.h(k) == pytest.approx(CONTENT.get(k, 0j), abs=1e-9)
+    ignored = demodulate(signal, angle, SPP)
+    assert abs(ignored.h(2) - CONTENT[2]) > 0.01
+    # The harmonics share precision with the decay's columns: their variance per unit of
+    # sample noise grows, most at the orders next to the mode.
+    clean = demodulate(_drop(_signal(angle, CONTENT), 0.10, 3), angle, SPP)
+    assert clean.unit_variance is not None and fitted.unit_variance is not None
+    growth = fitted.unit_variance / clean.unit_variance
+    assert np.all(growth >= 1.0 - 1e-9)
+    assert np.argmax(growth) == 1 and growth.max() > 1.02  # order 2, at 40 Hz
+
+
 def test_mismatched_shapes_and_too_few_samples_are_refused() -> None:
     angle = _angle(100)
     with pytest.raises(ValueError, match="must match"):

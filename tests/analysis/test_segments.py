@@ -20,7 +20,9 @@ from numpy.typing import NDArray
 from station.analysis.harmonics import demodulate
 from station.analysis.segments import (
     MIN_PERIODS,
+    ChainDecay,
     Segment,
+    Settling,
     constant_velocity_runs,
     holds,
     position_glitches,
@@ -428,6 +430,71 @@ def test_a_hold_whose_rotor_never_settles_is_rejected_with_the_reason() -> None:
     assert segments == []
     assert [r.reason for r in rejected] == ["the rotor did not settle within the hold"] * 5
     assert [r.stop for r in rejected] == run.bounds[1:]
+
+
+RING_HZ, RING_TAU_S = 37.0, 0.8
+"""A belt mode at 37 Hz decaying with τ = 0.8 s: ln 300 ≈ 5.7 τ = 4.6 s to forget a
+change, against holds of 0.6 s."""
+
+
+def _ringing_run() -> Run:
+    """Trim holds of 12 periods each; after every change the chain's mode rings on
+    through the whole hold (the phasors themselves step at once)."""
+    run = _offset_sweep(tau_s=0.0, periods=12, ring=0.0)
+    change = np.zeros(run.signal.size)
+    for a, b in itertools.pairwise(run.bounds):
+        change[a:b] = np.arange(b - a) * PERIOD_S
+    run.signal += 0.3 * np.exp(-change / RING_TAU_S) * np.cos(2 * math.pi * RING_HZ * change)
+    return run
+
+
+def _belt_decay(amplitude_mA: int, electrical_hz: float) -> ChainDecay:
+    """What a fitted chain says of the belt above: its pole, and a 20 ms floor."""
+    pole = complex(-1.0 / RING_TAU_S, 2 * math.pi * RING_HZ)
+    return ChainDecay((pole,), math.log(300.0), 0.02)
+
+
+def test_a_hold_shorter_than_the_chains_decay_has_its_ringing_fitted_out() -> None:
+    run = _ringing_run()
+    # The data alone take the holds as settled: order 1 and 2 barely see a 37 Hz mode.
+    alone, _ = steady_segments(run.timeline(), run.signal)
+    assert [s.settling for s in alone] == [Settling.DATA] * 5
+    segments, rejected = steady_segments(run.timeline(), run.signal,
+                                         settle_fallback=_belt_decay)
+    assert rejected == [] and len(segments) == 5
+    sigma = NOISE * math.sqrt(2 / 500)  # Ĥ1's noise over 10 periods of 50 samples
+    for seg in segments:
+        assert seg.settling is Settling.RINGING
+        (pole,) = seg.ringing  # per sample
+        assert pole == pytest.approx(complex(-PERIOD_S / RING_TAU_S,
+                                             2 * math.pi * RING_HZ * PERIOD_S))
+        # Only the floor is waited for: the hold keeps all but its first period.
+        assert seg.periods == 11
+        window = run.signal[seg.start:seg.stop]
+        fitted = demodulate(window, seg.electrical_angle(), SPP, decays=seg.ringing,
+                            decay_from=seg.start - seg.held_from)
+        trims = _as_tuple(seg.trims)
+        assert abs(fitted.h(1) - h1_of(trims)) < 4 * sigma
+        assert abs(fitted.h(2) - h2_of(trims)) < 4 * sigma
+        # Left in, the ringing biases the phasors far beyond their noise (most at order
+        # 2, 40 Hz, beside the mode).
+        ignored = demodulate(window, seg.electrical_angle(), SPP)
+        assert abs(ignored.h(2) - h2_of(trims)) > 10 * sigma
+
+
+def test_a_chain_decay_waits_for_every_mode_when_the_hold_allows_it() -> None:
+    slow, fast = complex(-2.0, 200.0), complex(-60.0, 900.0)
+    decay = ChainDecay((fast, slow), math.log(300.0), 0.02)
+    e = math.log(300.0)
+    assert decay.settle_s() == pytest.approx(e / 2.0)
+    wait, ringing = decay.plan(10.0, 1.0)
+    assert wait == pytest.approx(e / 2.0) and ringing == ()
+    # Too short to wait for the slow mode: it alone is fitted out, the fast one waited for.
+    wait, ringing = decay.plan(1.0, 0.5)
+    assert wait == pytest.approx(e / 60.0) and ringing == (slow,)
+    # Too short even for the fast one: both fitted out after the floor.
+    wait, ringing = decay.plan(0.1, 0.05)
+    assert wait == pytest.approx(0.02) and ringing == (slow, fast)
 
 
 def test_a_fixed_settle_count_drops_exactly_that_many_periods() -> None:
