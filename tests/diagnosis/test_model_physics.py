@@ -43,7 +43,7 @@ from station.diagnosis.model import (
     saturation_slopes,
     sawtooth_mean,
 )
-from station.diagnosis.observations import Observations, observe
+from station.diagnosis.observations import NotDiagnosable, Observations, observe
 from station.schedules import RandomCharacterizationRanges, random_characterization
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
@@ -279,3 +279,24 @@ def test_holds_shorter_than_a_belts_decay_give_the_phasors_of_long_holds() -> No
     # 1.36 per value fitted out against 2.75 with the same segments' ringing left in.
     assert fitted_out / values < 1.7
     assert ignored / values > 2 * fitted_out / values
+
+
+def test_a_recording_clipped_at_all_but_one_speed_is_refused_with_the_range_to_change() -> None:
+    """Clipping, not the schedule, left one speed: the refusal must say so, or the engineer
+    records the same schedule again with the same range."""
+    seed = 42
+    unit = plan_trial(Case(TrialClass(frozenset()), seed)).unit
+    ranges = RandomCharacterizationRanges(speeds=(2, 2), electrical_hz=(15.0, 30.0),
+                                          amplitudes=(2, 2), hold_s=(0.6, 0.6))
+    schedule = random_characterization(np.random.default_rng(seed), ranges=ranges)
+    recorded = simulate_timeline(unit, schedule, seed=seed, substeps=PLANT_SUBSTEPS)
+    speed = np.abs(np.diff(recorded.position, prepend=recorded.position[0]))
+    fast = speed > 0.5 * (speed.max() + np.median(speed[speed > 0]))
+    assert 0.2 < np.mean(fast) < 0.6
+    # Half of every fast sample at the full scale, as a sensor of too small a range gives.
+    half = fast & (np.arange(fast.size) % 2 == 0)
+    clipped = replace(recorded, saturated=recorded.saturated | half)
+    assert len({round(abs(c.electrical_hz), 1) for c in observe(recorded).conditions}) == 2
+    with pytest.raises(NotDiagnosable, match="clipped at the sensor's full scale") as refused:
+        observe(clipped)
+    assert "record with a larger range" in str(refused.value)
