@@ -442,7 +442,10 @@ def steady_segments(
                         if ringing:
                             skip, settling = max(skip, floor), Settling.RINGING
                             ringing = tuple(p * period_s for p in ringing)
-                        elif skip < floor:
+                        elif skip < floor <= b - a - MIN_PERIODS * spp:
+                            # Not at the cost of the hold: a wait with no mode to fit out
+                            # (a prior's) that leaves less than three periods is not
+                            # trusted over the data's own judgement.
                             skip, settling = floor, Settling.MODEL
             else:
                 skip = settle_periods * spp

@@ -482,6 +482,23 @@ def test_a_hold_shorter_than_the_chains_decay_has_its_ringing_fitted_out() -> No
         assert abs(ignored.h(2) - h2_of(trims)) > 10 * sigma
 
 
+@pytest.mark.parametrize(("floor_s", "settling"), [(0.2, Settling.MODEL), (0.3, Settling.DATA)])
+def test_a_wait_with_no_mode_to_fit_out_is_kept_only_if_the_hold_has_room_for_it(
+    floor_s: float, settling: Settling,
+) -> None:
+    """Holds of 8 periods (0.4 s) the data judge settled at once. A prior's 0.2 s wait
+    leaves 4 periods and is taken; 0.3 s would leave 2, so the data's judgement stands."""
+    run = Run([steady(8), steady(8, (-300, 0, 10000, 10000))])
+
+    def prior(amplitude_mA: int, electrical_hz: float) -> ChainDecay:
+        return ChainDecay((), math.log(300.0), floor_s)
+
+    segments, rejected = steady_segments(run.timeline(), run.signal, settle_fallback=prior)
+    assert rejected == []
+    assert [s.settling for s in segments][1:] == [settling]
+    assert segments[1].periods == (4 if settling is Settling.MODEL else 8)
+
+
 def test_a_chain_decay_waits_for_every_mode_when_the_hold_allows_it() -> None:
     slow, fast = complex(-2.0, 200.0), complex(-60.0, 900.0)
     decay = ChainDecay((fast, slow), math.log(300.0), 0.02)
