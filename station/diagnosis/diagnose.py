@@ -18,10 +18,11 @@
 4. Name: every term group of the vocabulary is tried; a group counts when it
    lowers χ² by more than the noise explains for the parameters it adds (an F
    test against the larger model's own residual, and Schwarz's criterion) and
-   lowers it on conditions held out of the fit. Combinations of up to three
-   are searched with a beam. A rival that fits held-out data about as well
-   (a paired test on the held-out residuals) is reported with the experiment
-   that would separate them.
+   lowers it on conditions held out of the fit; a group whose parameter was
+   the best of a scan (the clock's rate) must also beat the best that scan
+   finds in noise. Combinations of up to three are searched with a beam. A
+   rival that fits held-out data about as well (a paired test on the held-out
+   residuals) is reported with the experiment that would separate them.
 5. Be honest about the unknown: when the best model still leaves held-out
    residual well beyond the noise, that is said, with where it is, and an id
    is kept only if it explains more of the mismatch than is left unexplained:
@@ -67,6 +68,7 @@ from station.diagnosis.groups import (
     GROUP_ESTIMATES,
     GROUP_PARAMETERS,
     GROUP_STARTS,
+    scan_trials,
     separating_experiment,
 )
 from station.diagnosis.model import ChainKind, Model, ModelSpec, chain_for
@@ -215,13 +217,14 @@ class Test:
     f_threshold: float
     bic_threshold: float
     noise: float  # the larger model's χ² per dof, floored at 1
+    elsewhere: float = 0.0  # χ² the best of a scan gains on noise alone (``compare``)
 
     @property
     def significant(self) -> bool:
         """Gains beyond noise, by a model whose added groups stay the physics they name
         (none resting on a bound that makes it something else: ``Block.rejects``)."""
         return (self.chi2_gain > max(self.f_threshold, self.bic_threshold)
-                and self.held_gain > self.added * self.noise
+                and self.held_gain > self.added * self.noise + self.elsewhere
                 and not self.larger.fit.rejected)
 
 
@@ -746,20 +749,25 @@ def _readable(name: str, value: float) -> tuple[str, str]:
 # --------------------------------------------------------------------------- naming
 def compare(smaller: Candidate, larger: Candidate) -> Test:
     """The nested-model test of the module note: F against the larger model's own noise
-    (floored at the measurement's), Schwarz's criterion, and a held-out gain."""
+    (floored at the measurement's), Schwarz's criterion, and a held-out gain; each raised
+    by 2·ln M when the added groups were the best of M scanned chances (``scan_trials``):
+    the largest of M gains of noise alone exceeds u about M·e^{−u/2} of the time."""
     added = max(1, larger.fit.parameters - smaller.fit.parameters)
     dof = larger.fit.dof
     noise = max(1.0, larger.fit.chi2 / dof)
     f_crit = float(stats.f.ppf(SIGNIFICANT_CONFIDENCE, added, dof))
+    trials = scan_trials(larger.fit.model) / scan_trials(smaller.fit.model)
+    elsewhere = 2.0 * math.log(max(1.0, trials)) * noise
     return Test(
         smaller=smaller,
         larger=larger,
         added=added,
         chi2_gain=smaller.fit.chi2 - larger.fit.chi2,
         held_gain=smaller.held.total - larger.held.total,
-        f_threshold=f_crit * added * noise,
-        bic_threshold=added * math.log(larger.fit.observations) * noise,
+        f_threshold=f_crit * added * noise + elsewhere,
+        bic_threshold=added * math.log(larger.fit.observations) * noise + elsewhere,
         noise=noise,
+        elsewhere=elsewhere,
     )
 
 

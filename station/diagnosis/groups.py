@@ -134,6 +134,22 @@ def _starts_clock(model: Model, p: NDArray[np.float64], peaks: int = 3) -> list[
     return [{"clock_drift_ppm": [float(-slope / t * 1e6)]}]
 
 
+def scan_trials(model: Model) -> float:
+    """How many independent models the groups of ``model`` were chosen among by a scan.
+
+    The clock's rate is the best of a periodogram over thousands of rates: on noise alone
+    its gain is the largest of that many chances, not one (the look-elsewhere effect).
+    A sawtooth over N samples resolves rates 10⁶/N ppm apart, so the scan holds about
+    (range · N / 10⁶) independent rates. A clock that stamps its own samples (a line) is
+    a regression, and no group but the clock is scanned.
+    """
+    if not model.layout.has("clock_phase"):
+        return 1.0
+    span = float(model.obs.span[-1, 1] - model.obs.span[0, 0])
+    scanned = float(CLOCK_RATES_PPM[-1] - CLOCK_RATES_PPM[0])
+    return max(1.0, scanned * 1e-6 * span)
+
+
 MIN_CLOCK_PPM = 5.0
 """A periodogram peak nearer no drift than this is the constant delay the base model has."""
 
