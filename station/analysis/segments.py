@@ -434,18 +434,13 @@ def steady_segments(
                     skip = first * spp
                     if decay is not None:
                         # A lightly damped mode rings on at orders the data test cannot
-                        # watch closely enough; where the model says it needs longer, wait,
-                        # and where the hold is too short for that, fit the ringing out.
-                        wait_s, ringing = decay.plan(
-                            (b - hold.start) * period_s, MIN_PERIODS * spp * period_s)
-                        floor = wait_s / period_s - (a - hold.start)
-                        if ringing:
-                            skip, settling = max(skip, floor), Settling.RINGING
-                            ringing = tuple(p * period_s for p in ringing)
-                        elif skip < floor <= b - a - MIN_PERIODS * spp:
-                            # Not at the cost of the hold: a wait with no mode to fit out
-                            # (a prior's) that leaves less than three periods is not
-                            # trusted over the data's own judgement.
+                        # watch closely enough; where the model says it needs longer, wait.
+                        # Not at the cost of the hold: a model that wants longer than the
+                        # hold leaves (less than three periods) is not trusted over the
+                        # data's own judgement, nor is its ringing fitted out there (on a
+                        # development disk that left a coupling's trace for saturation).
+                        floor = decay.settle_s() / period_s - (a - hold.start)
+                        if skip < floor <= b - a - MIN_PERIODS * spp:
                             skip, settling = floor, Settling.MODEL
             else:
                 skip = settle_periods * spp

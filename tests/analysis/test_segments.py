@@ -434,13 +434,13 @@ def test_a_hold_whose_rotor_never_settles_is_rejected_with_the_reason() -> None:
 
 RING_HZ, RING_TAU_S = 37.0, 0.8
 """A belt mode at 37 Hz decaying with τ = 0.8 s: ln 300 ≈ 5.7 τ = 4.6 s to forget a
-change, against holds of 0.6 s."""
+change, against holds of 0.25 s."""
 
 
-def _ringing_run() -> Run:
-    """Trim holds of 12 periods each; after every change the chain's mode rings on
-    through the whole hold (the phasors themselves step at once)."""
-    run = _offset_sweep(tau_s=0.0, periods=12, ring=0.0)
+def _ringing_run(periods: int = 5) -> Run:
+    """Trim holds of 5 periods each (too short for the data to judge); after every change
+    the chain's mode rings on through the whole hold (the phasors step at once)."""
+    run = _offset_sweep(tau_s=0.0, periods=periods, ring=0.0)
     change = np.zeros(run.signal.size)
     for a, b in itertools.pairwise(run.bounds):
         change[a:b] = np.arange(b - a) * PERIOD_S
@@ -456,20 +456,20 @@ def _belt_decay(amplitude_mA: int, electrical_hz: float) -> ChainDecay:
 
 def test_a_hold_shorter_than_the_chains_decay_has_its_ringing_fitted_out() -> None:
     run = _ringing_run()
-    # The data alone take the holds as settled: order 1 and 2 barely see a 37 Hz mode.
+    # On the data alone, holds this short cannot be judged, so none is used.
     alone, _ = steady_segments(run.timeline(), run.signal)
-    assert [s.settling for s in alone] == [Settling.DATA] * 5
+    assert alone == []
     segments, rejected = steady_segments(run.timeline(), run.signal,
                                          settle_fallback=_belt_decay)
     assert rejected == [] and len(segments) == 5
-    sigma = NOISE * math.sqrt(2 / 500)  # Ĥ1's noise over 10 periods of 50 samples
+    sigma = NOISE * math.sqrt(2 / 200)  # Ĥ's noise over 4 periods of 50 samples
     for seg in segments:
         assert seg.settling is Settling.RINGING
         (pole,) = seg.ringing  # per sample
         assert pole == pytest.approx(complex(-PERIOD_S / RING_TAU_S,
                                              2 * math.pi * RING_HZ * PERIOD_S))
         # Only the floor is waited for: the hold keeps all but its first period.
-        assert seg.periods == 11
+        assert seg.periods == 4
         window = run.signal[seg.start:seg.stop]
         fitted = demodulate(window, seg.electrical_angle(), SPP, decays=seg.ringing,
                             decay_from=seg.start - seg.held_from)
@@ -480,6 +480,14 @@ def test_a_hold_shorter_than_the_chains_decay_has_its_ringing_fitted_out() -> No
         # 2, 40 Hz, beside the mode).
         ignored = demodulate(window, seg.electrical_angle(), SPP)
         assert abs(ignored.h(2) - h2_of(trims)) > 10 * sigma
+
+
+def test_a_hold_the_data_judge_settled_keeps_the_datas_judgement() -> None:
+    """Holds of 12 periods with the same ringing: the data take them as settled (orders 1
+    and 2 barely see a 37 Hz mode), and a model wanting 4.6 s is not trusted over them."""
+    run = _ringing_run(periods=12)
+    segments, _ = steady_segments(run.timeline(), run.signal, settle_fallback=_belt_decay)
+    assert [(s.settling, s.ringing) for s in segments] == [(Settling.DATA, ())] * 5
 
 
 @pytest.mark.parametrize(("floor_s", "settling"), [(0.2, Settling.MODEL), (0.3, Settling.DATA)])
