@@ -27,7 +27,6 @@ from station.analysis.estimate import (
 from station.analysis.harmonics import (
     DEFAULT_ORDERS,
     Harmonics,
-    demodulate,
     period_phasors,
     phase_drift,
 )
@@ -142,11 +141,8 @@ def measure(
                     for seg, d in zip(segments, speed_errors(segments, signal), strict=True)]
     out: list[Measured] = []
     for seg in segments:
-        window = signal[seg.start : seg.stop]
-        spp = seg.samples_per_period
         try:
-            h = demodulate(window, seg.electrical_angle(), spp, orders=options.orders,
-                           decays=seg.ringing, decay_from=seg.start - seg.held_from)
+            h = seg.harmonics(signal[seg.start : seg.stop], options.orders)
         except ValueError as exc:
             rejected.append(Rejected(seg.start, seg.stop, f"cannot demodulate: {exc}"))
             continue

@@ -20,7 +20,7 @@ from enum import StrEnum
 import numpy as np
 from numpy.typing import NDArray
 
-from station.analysis.harmonics import period_phasors
+from station.analysis.harmonics import Harmonics, demodulate, period_phasors
 from station.analysis.timeline import Timeline
 from station.core import Trims
 
@@ -160,6 +160,13 @@ class Segment:
         n = np.arange(self.samples, dtype=np.float64)
         position = self.position0 + self.microsteps_per_sample * n
         return (2 * math.pi / cycle) * np.mod(position, cycle)
+
+    def harmonics(self, window: NDArray[np.float64], orders: int) -> Harmonics:
+        """``demodulate`` of the segment's samples ``window`` on its own angle, with the
+        chain's ringing fitted out from the hold's change where it still rings."""
+        return demodulate(window, self.electrical_angle(), self.samples_per_period,
+                          orders=orders, decays=self.ringing,
+                          decay_from=self.start - self.held_from)
 
 
 @dataclass(frozen=True)

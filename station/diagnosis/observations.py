@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from station.analysis.harmonics import JOINT_ORDERS, Harmonics, demodulate
+from station.analysis.harmonics import JOINT_ORDERS, Harmonics
 from station.analysis.pipeline import AnalysisOptions, Measured, group_conditions, measure
 from station.analysis.segments import Rejected, Segment, SettleFallback, Settling
 from station.analysis.timeline import Timeline
@@ -280,15 +280,16 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
         keys.append(key)
         rows.extend((len(keys) - 1, m) for m in usable)
     segs_all = [m.segment for _, m in rows]
-    why = "; ".join(sorted({r.reason for r in rejected}))
+    reasons = sorted({r.reason for r in rejected})
     if clipped_n:
         # A recording clipped at every fast speed needs another range, not another schedule.
-        why += (f"; {clipped_n} settled segment(s) clipped at the sensor's full scale in more "
-                f"than {100 * MAX_CLIPPED:.0f} % of their samples: record with a larger range")
+        reasons.append(f"{clipped_n} settled segment(s) clipped at the sensor's full scale in "
+                       f"more than {100 * MAX_CLIPPED:.0f} % of their samples: record with a "
+                       "larger range")
     if sparse_n:
-        why += (f"; {sparse_n} settled segment(s) with too few samples per period for order "
-                f"{orders}: record at lower speeds")
-    why = why.removeprefix("; ")
+        reasons.append(f"{sparse_n} settled segment(s) with too few samples per period for "
+                       f"order {orders}: record at lower speeds")
+    why = "; ".join(reasons)
     _refuse_unless_characterization(segs_all, period, len(keys), why)
     rows.sort(key=lambda row: row[1].segment.start)
     segs = [m.segment for _, m in rows]
@@ -347,9 +348,7 @@ def _other_axes(timeline: Timeline, segments: list[Segment], orders: int
             trend = np.polynomial.polynomial.polyfit(t[present], window[present], 2)
             window = window - np.polynomial.polynomial.polyval(t, trend)
             window[~present] = np.nan
-            spp = seg.samples_per_period
-            h = demodulate(window, seg.electrical_angle(), spp, orders=orders,
-                           decays=seg.ringing, decay_from=seg.start - seg.held_from)
+            h = seg.harmonics(window, orders)
             found = np.isfinite(h.phasors)
             phasors[i, found] = h.phasors[found]
             sigma[i, found] = np.sqrt(h.variance[found])

@@ -471,8 +471,7 @@ def test_a_hold_shorter_than_the_chains_decay_has_its_ringing_fitted_out() -> No
         # Only the floor is waited for: the hold keeps all but its first period.
         assert seg.periods == 4
         window = run.signal[seg.start:seg.stop]
-        fitted = demodulate(window, seg.electrical_angle(), SPP, decays=seg.ringing,
-                            decay_from=seg.start - seg.held_from)
+        fitted = seg.harmonics(window, orders=8)
         trims = _as_tuple(seg.trims)
         assert abs(fitted.h(1) - h1_of(trims)) < 4 * sigma
         assert abs(fitted.h(2) - h2_of(trims)) < 4 * sigma
