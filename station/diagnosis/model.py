@@ -56,8 +56,6 @@ DISTORTION_ORDERS = (2, 3, 4, 5)
 """Harmonics h of each phase current's waveform."""
 DETENT_ORDERS = (4, 8)
 """Cogging repeats every full step: four times per electrical period, and its multiples."""
-SPRING_BLOCKS = frozenset({"flux", "detent", "saturation", "reluctance", "eccentricity"})
-"""Linear blocks that also change the magnetic spring the rotor swings on (``spring_design``)."""
 
 QUARTER = math.pi / 2.0
 
@@ -860,52 +858,12 @@ class Model:
         with a negative reluctance while the step still assumed the full spring.
         """
         stiff = (np.mean(self.torque_slope(p, m), axis=1) * self.rotor_teeth)[:, None]
-        theta, need = self._swing(m)
-        out: NDArray[np.complex128] = stiff * theta - need
-        return out
-
-    def _swing(self, m: Motion) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
-        """The rotor's swing and the torque the chain needs, per unit of rotor acceleration
-        (friction linearised about its mean slope): the two halves of ``sensitivity``."""
         t = m.transfer
         drag = m.friction_slope[:, None] / self.jw
-        return t.a + t.b * drag, t.c + t.d * drag
-
-    def spring_design(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
-        """d residuals / d linear parameter through the magnetic spring, (L, n).
-
-        ``linear_design`` holds the scale (the sensitivity) at the current iterate, which
-        is right for solving the linear parameters in passes but not for a Jacobian:
-        saturation, reluctance and the eccentric airgap change the spring the rotor swings
-        on, and on a chain with its mode in or near the band that moves every residual.
-        Left out, the Gauss-Newton steps of a fit with those groups aimed elsewhere than
-        downhill, and the held-out one-step predictions claimed gains no refit would find
-        (a clean belt's held-out χ² fell from 1345 to 431 on a reluctance whose true χ²
-        gain was 11). Each of those blocks enters the spring linearly, so a unit step of
-        its parameter gives the spring's derivative exactly.
-        """
-        lin = self.linear_index()
-        out = np.zeros((lin.size, self.residual_rows().size))
-        names = self._linear_names()
-        springy = [k for k, name in enumerate(names) if name in SPRING_BLOCKS]
-        if not springy:
-            return out.T
-        m = self.motion(p)
-        base = np.mean(self.torque_slope(p, m), axis=1)
-        theta, _ = self._swing(m)
-        weighted = self.error(p, m) * self.scale(p, m)
-        # d(scale)/dβ = −scale · d(sensitivity)/dβ / sensitivity
-        relative = weighted * self.rotor_teeth * theta / self.sensitivity(p, m)
-        zeros_dc = np.zeros(self.obs.count)
-        for k in springy:
-            q = p.copy()
-            q[lin[k]] += 1.0
-            moved = m
-            if names[k] == "eccentricity":
-                moved = replace(m, modulation=self.modulation(q), _powers=m._powers)
-            slope = np.mean(self.torque_slope(q, moved), axis=1) - base
-            out[k] = self._flatten(-relative * slope[:, None], zeros_dc, np.zeros(1))
-        return out.T
+        theta = t.a + t.b * drag
+        need = t.c + t.d * drag
+        out: NDArray[np.complex128] = stiff * theta - need
+        return out
 
     def error(self, p: NDArray[np.float64], m: Motion,
               made_grid: NDArray[np.float64] | None = None) -> NDArray[np.complex128]:
