@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from scipy import stats
 
 from station.core import GAIN_UNITY, Trims
+from station.dsp import h1_then_h2_null
 
 
 class Method(StrEnum):
@@ -530,15 +531,15 @@ def _select(points: Sequence[TrimPoint], order: int, available: int) -> _Affine 
 
 def _null(models: Sequence[_Affine], coefs: Sequence[NDArray[np.complex128]] | None = None
           ) -> NDArray[np.float64]:
-    """Trims (offset A, offset B, split) minimising |H1|² + |H2|² under the fitted maps."""
-    rows: list[NDArray[np.float64]] = []
-    rhs: list[float] = []
-    for i, m in enumerate(models):
-        const, slopes = m.linear(None if coefs is None else coefs[i])
-        rows.extend([slopes.real, slopes.imag])
-        rhs.extend([-const.real, -const.imag])
-    solution, *_ = np.linalg.lstsq(np.array(rows), np.array(rhs), rcond=None)
-    return np.asarray(solution, dtype=np.float64)
+    """Trims (offset A, offset B, split) where the fitted maps null H1, then least |H2|.
+
+    The truth's definition (``h1_then_h2_null``), not least |H1|² + |H2|²:
+    that would trade H1's null for H2's quadrature part, which no split reaches.
+    """
+    maps = {m.order: m.linear(None if coefs is None else coefs[i])
+            for i, m in enumerate(models)}
+    (h1, jac1), (h2, jac2) = maps[1], maps[2]
+    return h1_then_h2_null(h1, h2, jac1, jac2)
 
 
 def _null_covariance(models: Sequence[_Affine]) -> NDArray[np.float64]:

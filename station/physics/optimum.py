@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.core import GAIN_UNITY, Trims
-from station.dsp.demod import harmonic_phasors
+from station.dsp import h1_then_h2_null, harmonic_phasors
 from station.physics.params import UnitParams
 from station.physics.plant import DriveCommand, Plant, modal_analysis
 
@@ -112,25 +112,6 @@ def _trims(u: NDArray[np.float64]) -> Trims:
     return Trims(float(u[0]), float(u[1]), GAIN_UNITY + float(u[2]), GAIN_UNITY - float(u[2]))
 
 
-def _step(h1: complex, h2: complex, jac1: NDArray[np.complex128],
-          jac2: NDArray[np.complex128]) -> NDArray[np.float64]:
-    """Δ with H1 + J1·Δ = 0 that minimises |H2 + J2·Δ|² along what that leaves free.
-
-    Two real equations in three unknowns leave a line Δp + t·n; on it H2 is
-    complex-affine in t, so t* = −Re(conj(J2·n)·(H2 + J2·Δp)) / |J2·n|² (the
-    paper's 3rd step, generalised to H1 depending on the split and H2 on the
-    offsets).
-    """
-    a = np.vstack([jac1.real, jac1.imag])
-    b = -np.array([h1.real, h1.imag])
-    particular = np.linalg.lstsq(a, b, rcond=None)[0]
-    null = np.linalg.svd(a)[2][-1]
-    g = complex(jac2 @ null)
-    r = complex(h2 + jac2 @ particular)
-    t = -(g.conjugate() * r).real / (abs(g) ** 2) if abs(g) > 0 else 0.0
-    return np.asarray(particular + t * null, dtype=np.float64)
-
-
 def optimal_trims(
     unit: UnitParams,
     *,
@@ -169,7 +150,7 @@ def optimal_trims(
     jac1, jac2 = jacobian(u, base)
     previous = math.inf
     for _ in range(MAX_ITERATIONS):
-        delta = _step(base[0], base[1], jac1, jac2)
+        delta = h1_then_h2_null(base[0], base[1], jac1, jac2)
         u = u + delta
         size = max(abs(delta[0]) / TOLERANCE_mA, abs(delta[1]) / TOLERANCE_mA,
                    abs(delta[2]) / TOLERANCE_GAIN)

@@ -178,6 +178,28 @@ def test_far_points_that_saturate_do_not_bias_the_paper_offsets() -> None:
         assert abs(err[0]) <= 3.0 and abs(err[1]) <= 3.0 and abs(err[2]) <= 30.0, err
 
 
+def test_the_offsets_null_h1_even_where_h2_keeps_a_part_no_split_reaches() -> None:
+    """The paper's order, which the truth follows: offsets null H1, the split then does
+    what it can for H2. Here H2 leans on the offsets and keeps, at the optimum, a part in
+    quadrature to what the split moves; least |H1|² + |H2|² would shave that part with
+    the offsets and miss H1's null."""
+    j2 = np.array([3e-4 * np.exp(0.2j), 3e-4 * np.exp(1.9j), J2[2]])
+    unreachable = 0.3j * J2[2] / abs(J2[2])
+
+    def response(u: NDArray[np.float64]) -> tuple[complex, complex]:
+        d = u - OPTIMUM
+        return complex(J1 @ d), complex(j2 @ d) + unreachable
+
+    rows = np.vstack([J1.real, J1.imag, j2.real, j2.imag])
+    rhs = -np.array([0.0, 0.0, unreachable.real, unreachable.imag])
+    least_squares_error = np.linalg.lstsq(rows, rhs, rcond=None)[0]
+    assert np.max(np.abs(least_squares_error[:2])) > 5.0, least_squares_error  # it matters
+    for seed in range(3):
+        err = errors(coherent_estimate(points(cross_design(), seed=seed,
+                                              response=response)).trims)
+        assert abs(err[0]) <= 1.0 and abs(err[1]) <= 1.0 and abs(err[2]) <= 10.0, err
+
+
 def test_offsets_on_one_axis_only_are_refused() -> None:
     design = [u for u in cross_design() if u[1] == 0.0]  # no offset B sweep
     with pytest.raises(Unsupported, match="do not span both offsets"):
