@@ -8,8 +8,9 @@ Two estimators, both pure functions of the points:
 - a phase-coherent one: H1 and H2 are complex and, near the optimum, affine
   in the trims (eq. 16 is linear in the offsets and in the amplitude
   imbalance), so the affine maps are fitted from whatever points exist and
-  solved for the trims that null them. It uses the phase the paper throws
-  away, so it needs no sweep through the minimum and no separable design.
+  solved for the offsets that null H1 and the split that then leaves the
+  least H2, the paper's order. It uses the phase the paper throws away, so
+  it needs no sweep through the minimum and no separable design.
 
 Real sweeps go far enough for the response to turn nonlinear (a large rotor
 oscillation, a clipped sensor). Both estimators therefore fit only the
