@@ -50,6 +50,10 @@ from station.diagnosis.observations import MODEL_FLOOR, Observations
 GRID = 64
 """Points per electrical period where torques are evaluated: orders up to 31 alias-free."""
 
+TRIM_LAG_MAX = 0.5
+"""Largest shift of a segment's rotor from its condition's load angle (electrical rad):
+a mean torque that moves the rotor further is not a small step on its spring."""
+
 FLUX_ORDERS = (2, 3, 4, 5)
 """Harmonics j of the mutual inductances L1f, L2f (j = 1 is the fundamental)."""
 DISTORTION_ORDERS = (2, 3, 4, 5)
@@ -820,8 +824,39 @@ class Model:
         rho = self._p(p, "load_angle_rad")[self.obs.condition]
         te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
         i_a, i_b = self.currents(p)
+        modulation = self.modulation(p)
+        first = Motion(alpha, sensor, transfer, force, slope, te, np.sin(te), np.cos(te), i_a,
+                       i_b, modulation)
+        te = te + self.trim_lag(p, first)[:, None]
         return Motion(alpha, sensor, transfer, force, slope, te, np.sin(te), np.cos(te), i_a,
-                      i_b, self.modulation(p))
+                      i_b, modulation)
+
+    def trim_lag(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
+        """How far each segment's rotor sits from its condition's load angle (electrical
+        rad, (S,)): a trim step changes the mean torque the currents make on the swinging
+        rotor (offsets and gain errors beating with the swing at orders 1 and 2), and the
+        rotor slips along its magnetic spring until the mean torque again equals what the
+        chain takes at that speed, the same for every segment of the condition.
+
+        Near a mode that torque is several percent of the holding torque and moves with
+        every step (a belt at 390 mA beside its 23 Hz mode: the condition's spread of it was
+        21 times the balance's floor), so one angle per condition left the torque balance
+        and the harmonics' phases wrong by as much. One Newton step along the spring from
+        the condition's angle; the condition's mean torque, which its angle sets against
+        the chain's drag, is kept.
+        """
+        made = self.torque(p, m).mean(axis=1)
+        stiff = self.torque_slope(p, m).mean(axis=1)
+        conditions = len(self.obs.conditions)
+        count = np.bincount(self.obs.condition, minlength=conditions)
+        level = (np.bincount(self.obs.condition, weights=made, minlength=conditions)
+                 / np.maximum(count, 1))
+        # The slope is −I·cos ρ (a restoring spring): the lag that brings each segment's
+        # torque to its condition's level, capped where the spring is too soft to say.
+        safe = np.where(np.abs(stiff) > 0.05 * self.amp[:, 0], stiff, np.inf)
+        shift = (level[self.obs.condition] - made) / safe
+        out: NDArray[np.float64] = np.clip(shift, -TRIM_LAG_MAX, TRIM_LAG_MAX)
+        return out
 
     def torque_slope(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
         """∂(torque made)/∂θe on the grid, every term included: the magnetic spring."""

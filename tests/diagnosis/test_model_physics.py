@@ -223,14 +223,21 @@ def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() ->
 
 
 def test_a_drag_smoothed_over_the_slowest_speed_is_not_taken_for_coulomb_friction() -> None:
-    """A clean belt unit whose nominal chain is a little off gains χ² ≈ 30 from a friction
-    group smoothed as far as it may go (a drag rising with speed, not Coulomb friction);
-    that fit rests on the smoothing's ceiling and is not significant. Friction concealed
-    in a belt unit fits a smoothing well inside, and is."""
+    """A friction group smoothed as far as it may go is a drag rising with speed, not
+    Coulomb friction: a fit resting on the smoothing's ceiling never counts, whatever it
+    gains (a clean belt unit whose nominal chain was a little off once gained χ² ≈ 30 that
+    way). The clean belt of seed 41 gains nothing from the group now; friction concealed in
+    a belt unit fits a smoothing well inside the range, and counts."""
     clean = _added(Case(TrialClass(frozenset()), 41), Effect.FRICTION)
-    assert clean.larger.fit.rejected == ("log_friction_smoothing",)
-    assert clean.chi2_gain > max(clean.f_threshold, clean.bic_threshold)
     assert not clean.significant
+    assert clean.chi2_gain < max(clean.f_threshold, clean.bic_threshold)
+    at_ceiling = clean.larger.fit
+    active = at_ceiling.active.copy()
+    active[at_ceiling.model.layout.slices["log_friction_smoothing"]] = 1
+    resting = replace(at_ceiling, active=active)
+    assert resting.rejected == ("log_friction_smoothing",)
+    larger = replace(clean.larger, fit=resting)
+    assert not replace(clean, larger=larger, chi2_gain=1e6, held_gain=1e6).significant
     concealed = _added(Case(TrialClass(frozenset({Effect.FRICTION})), 26), Effect.FRICTION)
     assert concealed.larger.fit.rejected == ()
     assert concealed.significant
@@ -277,9 +284,10 @@ def test_holds_shorter_than_a_belts_decay_give_the_phasors_of_long_holds() -> No
         ignored += float(np.sum(np.abs(plain.phasors[:obs.orders] - settled.phasors[j]) ** 2
                                 / variance))
     values = 2 * obs.count * obs.orders
-    # 1.36 per value fitted out against 2.75 with the same segments' ringing left in.
+    # 1.41 per value fitted out against 2.72 with the same segments' ringing left in (1.36
+    # before each trim step's slip along the spring moved the fitted chain a little).
     assert fitted_out / values < 1.7
-    assert ignored / values > 2 * fitted_out / values
+    assert ignored / values > 1.8 * fitted_out / values
 
 
 def test_a_recording_clipped_at_all_but_one_speed_is_refused_with_the_range_to_change() -> None:
@@ -318,3 +326,25 @@ def test_a_clocks_rate_chosen_by_a_scan_must_beat_what_the_scan_finds_in_noise()
     assert 0.0 < test.chi2_gain < test.bic_threshold and not test.significant
     # Nothing is scanned when the clock is already in both models.
     assert compare(test.larger, test.larger).elsewhere == 0.0
+
+
+def test_each_trim_step_moves_the_rotor_along_its_spring_so_a_belt_beside_its_mode_balances(
+) -> None:
+    """Development seed 61 draws a clean belt unit whose rotor mode sits at 23 Hz at
+    390 mA, beside a 21.5 Hz condition. There, the offsets and gain errors beating with
+    the swing make a mean torque of several percent of the holding torque that changes
+    with every trim step, and the rotor slips along its spring until the torque again
+    meets the drag. With one load angle per condition the torque balance missed by 21
+    times its floor there, and the clean unit's nominal fit ended at χ²/dof 5.8 (a
+    mismatch reported on a clean unit); with each segment's slip it is at the noise."""
+    case = Case(TrialClass(), 61)
+    plan = plan_trial(case)
+    assert plan.unit.mechanics.belt is not None
+    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
+                                 substeps=PLANT_SUBSTEPS)
+    with threadpool_limits(limits=1, user_api="blas"):
+        _, nominal = nominal_of(timeline)
+    balanced = nominal.balanced
+    assert balanced.chi2 / balanced.dof < 1.4
+    balance = balanced.residuals[balanced.model.harmonic_values:-1]
+    assert float(np.sqrt(np.mean(balance**2))) < 1.0  # each segment's, in its floor's units
