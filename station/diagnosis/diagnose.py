@@ -3,12 +3,13 @@
 1. Fit the nominal model: the paper's torque model on the chain the fixture
    declares (a rigid disk, or a belt with the metadata's gear ratio and
    unknown stiffness, damping and inertia ratio), the amplifier's offsets and
-   gains, a load angle per condition and the sensor's own low-pass. Chains are
-   started from a grid over their natural frequencies and inertia ratio, with
-   the linear parameters solved at every grid point, so a fit starts in the
-   right basin whatever the belt. A parameter the data pull past a physical
-   limit is a finding ("the nominal model cannot describe this recording"),
-   never a result.
+   gains, a load angle per condition (each trim step's rotor slipping from it
+   along its spring until the mean torque meets the drag again) and the
+   sensor's own low-pass. Chains are started from a grid over their natural
+   frequencies and inertia ratio, with the linear parameters solved at every
+   grid point, so a fit starts in the right basin whatever the belt. A
+   parameter the data pull past a physical limit is a finding ("the nominal
+   model cannot describe this recording"), never a result.
 2. Use every hold: holds too short to judge their own settling are settled
    by the fitted chain's slowest decay and added; what is skipped says why.
 3. Locate: where the nominal residual is significant, per harmonic order and
