@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from typing import Any
 
 import pytest
 
@@ -22,14 +23,34 @@ def test_the_same_serial_gives_the_same_unit() -> None:
     assert derive_unit("SN123").to_dict() == derive_unit("SN123").to_dict()
 
 
+def _leaves(doc: Any, path: str = "") -> dict[str, Any]:
+    """Every scalar of a JSON document by its path."""
+    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(
+        doc, list) else None
+    if items is None:
+        return {path: doc}
+    return {k: v for key, value in items for k, v in _leaves(value, f"{path}/{key}").items()}
+
+
 def test_the_unit_does_not_depend_on_the_process() -> None:
-    """SHA-256, not the per-process salted hash(): another interpreter agrees."""
+    """SHA-256, not the per-process salted hash(): another interpreter draws the same unit.
+
+    Drawn values must agree exactly. Values derived through LAPACK (the chain's modes, an
+    eigenproblem) may differ in their last bits between processes whose BLAS runs with
+    other threads or kernels (seen in CI: 96.94131465065902 against ...897 Hz), so those
+    agree to 1e-9."""
     code = ("import json; from station.physics.params import derive_unit; "
             "print(json.dumps(derive_unit('SN98765').to_dict(), sort_keys=True))")
     other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                            check=True, env={"PYTHONHASHSEED": "12345"}, cwd=".")
-    assert json.loads(other.stdout) == json.loads(
-        json.dumps(derive_unit("SN98765").to_dict(), sort_keys=True))
+    theirs = _leaves(json.loads(other.stdout))
+    mine = _leaves(json.loads(json.dumps(derive_unit("SN98765").to_dict(), sort_keys=True)))
+    assert theirs.keys() == mine.keys()
+    for key, value in mine.items():
+        if isinstance(value, float) and "chain_modes" in key:
+            assert math.isclose(theirs[key], value, rel_tol=1e-9), key
+        else:
+            assert theirs[key] == value, key
 
 
 def test_different_serials_give_different_imperfections() -> None:
