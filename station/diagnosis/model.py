@@ -53,6 +53,9 @@ GRID = 64
 TRIM_LAG_MAX = 0.5
 """Largest shift of a segment's rotor from its condition's load angle (electrical rad):
 a mean torque that moves the rotor further is not a small step on its spring."""
+TRIM_LAG_SOFTEST = 0.05
+"""Below this spring (|mean ∂torque/∂θe| per A of current, i.e. cos ρ near a load angle of
+±87°) a segment is given no slip: the step would be its torque over almost nothing."""
 
 FLUX_ORDERS = (2, 3, 4, 5)
 """Harmonics j of the mutual inductances L1f, L2f (j = 1 is the fundamental)."""
@@ -825,11 +828,16 @@ class Model:
         te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
         i_a, i_b = self.currents(p)
         modulation = self.modulation(p)
-        first = Motion(alpha, sensor, transfer, force, slope, te, np.sin(te), np.cos(te), i_a,
-                       i_b, modulation)
-        te = te + self.trim_lag(p, first)[:, None]
-        return Motion(alpha, sensor, transfer, force, slope, te, np.sin(te), np.cos(te), i_a,
-                      i_b, modulation)
+        sin_te, cos_te = np.sin(te), np.cos(te)
+        first = Motion(alpha, sensor, transfer, force, slope, te, sin_te, cos_te, i_a, i_b,
+                       modulation)
+        # One angle per segment: its grid's sines are rotated, not evaluated again (the
+        # trigonometry on the grid is most of a motion's own cost).
+        lag = self.trim_lag(p, first)[:, None]
+        turn_c, turn_s = np.cos(lag), np.sin(lag)
+        return Motion(alpha, sensor, transfer, force, slope, te + lag,
+                      sin_te * turn_c + cos_te * turn_s, cos_te * turn_c - sin_te * turn_s,
+                      i_a, i_b, modulation)
 
     def trim_lag(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
         """How far each segment's rotor sits from its condition's load angle (electrical
@@ -853,7 +861,7 @@ class Model:
                  / np.maximum(count, 1))
         # The slope is −I·cos ρ (a restoring spring): the lag that brings each segment's
         # torque to its condition's level, capped where the spring is too soft to say.
-        safe = np.where(np.abs(stiff) > 0.05 * self.amp[:, 0], stiff, np.inf)
+        safe = np.where(np.abs(stiff) > TRIM_LAG_SOFTEST * self.amp[:, 0], stiff, np.inf)
         shift = (level[self.obs.condition] - made) / safe
         out: NDArray[np.float64] = np.clip(shift, -TRIM_LAG_MAX, TRIM_LAG_MAX)
         return out
