@@ -20,6 +20,7 @@ from station.analysis.harmonics import demodulate
 from station.analysis.pipeline import tangential_signal
 from station.core import Effect
 from station.diagnosis.diagnose import (
+    MODEL_ERROR_SHARE,
     Candidate,
     _transplant,
     compare,
@@ -328,6 +329,20 @@ def test_a_clocks_rate_chosen_by_a_scan_must_beat_what_the_scan_finds_in_noise()
     assert test.chi2_gain < test.bic_threshold and not test.significant
     # Nothing is scanned when the clock is already in both models.
     assert compare(test.larger, test.larger).elsewhere == 0.0
+
+
+def test_a_group_beside_others_must_gain_more_than_their_own_errors_leave() -> None:
+    """A strong reluctance spring (development seed 24) is named beside nothing; beside
+    groups that took a million from the nominal χ², the same gain is no longer out of
+    their errors' reach: the thresholds rise by ``MODEL_ERROR_SHARE`` of it."""
+    test = _added(Case(TrialClass(frozenset({Effect.RELUCTANCE_TORQUE})), 24),
+                  Effect.RELUCTANCE_TORQUE)
+    assert test.significant and test.model_error == 0.0
+    explained = 2.0 * test.chi2_gain / MODEL_ERROR_SHARE
+    beside = compare(replace(test.smaller, explained=explained), test.larger)
+    assert beside.model_error == pytest.approx(2.0 * test.chi2_gain)
+    assert beside.bic_threshold == pytest.approx(test.bic_threshold + beside.model_error)
+    assert not beside.significant
 
 
 def test_each_trim_step_moves_the_rotor_along_its_spring_so_a_belt_beside_its_mode_balances(
