@@ -148,6 +148,9 @@ LOAD_RATIO_GRID = (0.1, 0.5, 2.0, 8.0, 30.0, 120.0)
 BELT_HZ_GRID = (12.0, 25.0, 50.0, 100.0, 200.0, 400.0, 800.0)
 
 GRID_DAMPING = 0.3
+GRID_EXACT = 24
+"""Grid points ranked by their true χ² after the first linear pass has ranked them all
+(``fit.screen``): four times the most any caller takes from the top."""
 
 NOMINAL_KEEP = 4
 """Grid points the nominal fit starts from, as ranked with the gain errors held (the best
@@ -500,8 +503,8 @@ def fit_nominal(obs: Observations, *, previous: Nominal | None = None) -> Nomina
     starts = nominal_starts(model)
     if previous is not None:
         starts.append(_transplant(model, previous.free))
-    ranked = screen(model, starts)
-    split = screen(model, starts, split=True)
+    ranked = screen(model, starts, exact=GRID_EXACT)
+    split = screen(model, starts, split=True, exact=GRID_EXACT)
     chosen = [x for _, x in ranked[:NOMINAL_KEEP]] + [x for _, x in split[:SPLIT_KEEP]]
     diverse = _diverse(model, split, chosen)
     refined = [_refine_angles(model, x) for x in chosen + diverse]
@@ -570,7 +573,8 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
         # The nominal bent its chain to hide what it lacks: the chain grid again, with the
         # new groups' linear parts solved at every point, finds the chain they leave
         # behind. Larger models start from the chain their best subset found.
-        estimated += [x for _, x in screen(model, nominal_starts(model))[:REGRID_KEEP]]
+        estimated += [x for _, x in screen(model, nominal_starts(model),
+                                            exact=GRID_EXACT)[:REGRID_KEEP]]
     result = fit(model, starts, keep=2, estimated=estimated)
     if bent and free is not None:
         # The unbent chain and load angles, with the new groups' linear parts solved: these

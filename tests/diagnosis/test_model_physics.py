@@ -21,6 +21,7 @@ from station.analysis.pipeline import tangential_signal
 from station.core import Effect
 from station.diagnosis import observations
 from station.diagnosis.diagnose import (
+    GRID_EXACT,
     MODEL_ERROR_SHARE,
     Candidate,
     _transplant,
@@ -28,9 +29,10 @@ from station.diagnosis.diagnose import (
     fit_nominal,
     fit_spec,
     nominal_of,
+    nominal_starts,
     settle_fallback,
 )
-from station.diagnosis.fit import fit, held_out, sigmas
+from station.diagnosis.fit import fit, held_out, screen, sigmas
 from station.diagnosis.groups import (
     CLOCK_PEAKS,
     CLOCK_RATES_PPM,
@@ -40,6 +42,7 @@ from station.diagnosis.groups import (
     segment_delays,
 )
 from station.diagnosis.model import (
+    ChainKind,
     Model,
     ModelSpec,
     saturation_shapes,
@@ -423,3 +426,22 @@ def test_a_belt_is_fitted_on_its_own_chain_whatever_its_load_and_phase_imbalance
     offsets = result.value("amp_offset_mA")
     assert offsets[0] == pytest.approx(unit.amplifier.offset_a_mA, abs=2.0)
     assert offsets[1] == pytest.approx(unit.amplifier.offset_b_mA, abs=2.0)
+
+
+def test_a_grid_prescreened_by_its_first_linear_pass_keeps_the_exact_rankings_best_points(
+) -> None:
+    """Ranking all 294 points of a belt's grid by their true χ² costs two linear passes and
+    a model evaluation each; the first pass's own prediction ranks them almost as well, so
+    only the best ``GRID_EXACT`` get the rest. Whatever a caller takes from the top (at most
+    six points) must be what the exact ranking gives: same points, same χ²."""
+    timeline, _ = _clean(15)
+    with threadpool_limits(limits=1, user_api="blas"):
+        model = Model(ModelSpec(ChainKind.BELT, dc_balance=False), observe(timeline))
+        starts = nominal_starts(model)
+        for split in (False, True):
+            full = screen(model, starts, split=split)
+            quick = screen(model, starts, split=split, exact=GRID_EXACT)
+            assert len(quick) == len(full) == len(starts)
+            for (chi2, x), (chi2_quick, x_quick) in zip(full[:6], quick[:6], strict=True):
+                assert chi2_quick == pytest.approx(chi2, rel=1e-9)
+                np.testing.assert_allclose(x_quick, x, rtol=1e-9, atol=1e-12)
