@@ -152,7 +152,7 @@ BELT_HZ_GRID = (12.0, 25.0, 50.0, 100.0, 200.0, 400.0, 800.0)
 GRID_DAMPING = 0.3
 MATCHED_DAMPING = (0.05, 0.3)
 """Belt and load damping ratios of the starts that keep a fitted belt's lowest mode."""
-MATCHED_KEEP = 3
+MATCHED_KEEP = 2
 """Of those, how many are polished (the best by their screened χ²)."""
 GRID_EXACT = 24
 """Grid points ranked by their true χ² after the first linear pass has ranked them all
@@ -539,8 +539,9 @@ def fit_nominal(obs: Observations, *, previous: Nominal | None = None) -> Nomina
 
 
 def _mode_matched(model: Model, found: Fit) -> Fit | None:
-    """A belt fitted again from starts that keep the chain's lowest mode where ``found``
-    has it, at every inertia ratio and belt frequency of the grid (None for a disk).
+    """A belt whose fit found a light load, fitted again from starts that keep the
+    chain's lowest mode where ``found`` has it, at every inertia ratio and belt frequency
+    of the grid (None for a disk, or a load of at least ``DIVERSE_MIN_RATIO``).
 
     What a recording pins first is the mode the whole chain swings on; how the inertia
     splits across the belt shows only in the few percent the belt's compliance bends the
@@ -551,7 +552,8 @@ def _mode_matched(model: Model, found: Fit) -> Fit | None:
     a load resonance; from starts with its 69 Hz mode kept, 474, as from its truth. With
     the belt stiff, that mode is the rotor's own frequency over √(1 + ratio).
     """
-    if model.spec.chain is not ChainKind.BELT:
+    if (model.spec.chain is not ChainKind.BELT
+            or math.exp(found.scalar("log_load_ratio")) >= DIVERSE_MIN_RATIO):
         return None
     modes = model.modes(found.params, 1.0)
     if not modes:
