@@ -225,21 +225,17 @@ def screen(model: Model, starts: list[NDArray[np.float64]], *, split: bool = Fal
     held, split_held = ((), SCREEN_HELD) if split else (SCREEN_HELD, ())
     solver = _LinearSolve(model, held, split_held)
     clipped = [np.clip(start, inside_low, inside_high) for start in starts]
+    rest: list[tuple[float, NDArray[np.float64]]] = []
     if exact is None or len(starts) <= exact:
-        first = [(0.0, x) for x in clipped]
-        rest: list[tuple[float, NDArray[np.float64]]] = []
-        passes = 2
+        first, passes = clipped, 2
     else:
-        quick = []
-        for x in clipped:
-            solved, predicted = solver.run(x, 1)
-            quick.append((predicted if math.isfinite(predicted) else math.inf, solved))
-        quick.sort(key=lambda item: item[0])
-        first = quick[:exact]
+        # The first pass of every point; the best go on from where it left them.
+        passed = (solver.run(x, 1) for x in clipped)
+        quick = sorted(((chi2, x) for x, chi2 in passed), key=lambda item: item[0])
+        first, passes = [x for _, x in quick[:exact]], 1
         rest = [(c, np.clip(x, inside_low, inside_high)) for c, x in quick[exact:]]
-        passes = 1
     screened = []
-    for _, x in first:
+    for x in first:
         x0 = np.clip(solver.run(x, passes)[0], inside_low, inside_high)
         screened.append((chi2_at(model, x0), x0))
     screened.sort(key=lambda item: item[0])
