@@ -59,10 +59,13 @@ from station.core import GAIN_UNITY, Effect
 from station.diagnosis.axes import AxisCoupling, axis_couplings, with_axes_checked
 from station.diagnosis.fit import (
     SCREEN_HELD,
+    TOURNAMENT_NFEV,
     Fit,
     HeldOut,
     ParameterJudgement,
     ParameterState,
+    best_of,
+    chosen_starts,
     fit,
     held_out,
     judge_parameters,
@@ -163,11 +166,11 @@ NOMINAL_KEEP = 4
 three of them, and of those below, are polished)."""
 SPLIT_KEEP = 2
 """...and as ranked with the gain errors' difference fitted (``fit.SCREEN_HELD``)."""
+FINALISTS = 2
+"""A larger model's starts polished in full after the short tournament (``best_of``)."""
 DIVERSE_MIN_RATIO = 0.5
 """A belt's grid points at load-to-rotor inertia ratios from this one up are each tried
 at least once (``_diverse``)."""
-TOURNAMENT_NFEV = 12
-"""Evaluations of the short polish that picks among diverse starts."""
 
 UNRESOLVED_SIGMA = {
     "log_rotor_hz": 0.5, "log_load_ratio": 1.0, "log_belt_hz": 0.5,
@@ -626,16 +629,15 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
         # behind. Larger models start from the chain their best subset found.
         estimated += [x for _, x in screen(model, nominal_starts(model),
                                             exact=GRID_EXACT)[:REGRID_KEEP]]
-    result = fit(model, starts, keep=2, estimated=estimated)
+    chosen = chosen_starts(model, starts, 2, estimated)
     if bent and free is not None:
         # The unbent chain and load angles, with the new groups' linear parts solved: these
-        # start worse than the bent ones, so they get their own run.
+        # start worse than the bent ones, so they are ranked among themselves.
         unbent = _transplant(model, free)
-        again = fit(model, [unbent, *(model.with_values(unbent, v) for e in added
-                                      if e in GROUP_STARTS
-                                      for v in GROUP_STARTS[e](model, unbent))], keep=2)
-        if again.chi2 < result.chi2:
-            result = again
+        chosen += chosen_starts(model, [unbent, *(model.with_values(unbent, v) for e in added
+                                                  if e in GROUP_STARTS
+                                                  for v in GROUP_STARTS[e](model, unbent))], 2)
+    result = best_of(model, chosen, finalists=FINALISTS)
     if result.chi2 > base.chi2:
         # Every start had its linear parameters solved again, which can lose the base's
         # own point; a larger model must never fit worse than the one it extends.
@@ -952,13 +954,16 @@ class Search:
     """Models by their set of term groups, fitted once each and kept for comparisons."""
 
     def __init__(self, obs: Observations, nominal: Candidate, free: Fit,
-                 progress: Callable[[str], None] | None) -> None:
+                 progress: Callable[[str], None] | None,
+                 previous: Search | None = None) -> None:
         self.obs = obs
         self.nominal = nominal
         self.free = free
         self.progress = progress
         self.cache: dict[tuple[frozenset[Effect], bool], Candidate] = {
             (frozenset(), False): nominal}
+        # The same models fitted with other weights (a first pass): where each is from.
+        self.previous = {} if previous is None else previous.cache
 
     def get(self, effects: frozenset[Effect], bend: bool = False) -> Candidate:
         """The model with these groups (and the sensor's bend, physics with no id)."""
@@ -972,6 +977,11 @@ class Search:
         spec = replace(self.nominal.spec, effects=effects, sensor_bend=bend)
         if self.progress is not None:
             self.progress("fitting " + spec.label())
+        earlier = self.previous.get(key)
+        if earlier is not None:
+            candidate = self._again(earlier.fit, base.fit)
+            self.cache[key] = candidate
+            return candidate
         result = fit_spec(self.obs, spec, base.fit, self.free)
         if Effect.SENSOR_CLOCK_DRIFT in effects:
             # A sensor may hold its latest sample per SYNC (a sawtooth of delays) or stamp
@@ -980,10 +990,30 @@ class Search:
                              base.fit, self.free)
             if other.chi2 < result.chi2:
                 result = other
-        candidate = Candidate(result.model.spec, result, held_out(result),
-                              max(0.0, self.nominal.fit.chi2 - result.chi2))
+        candidate = self._candidate(result)
         self.cache[key] = candidate
         return candidate
+
+    def _candidate(self, result: Fit) -> Candidate:
+        return Candidate(result.model.spec, result, held_out(result),
+                         max(0.0, self.nominal.fit.chi2 - result.chi2))
+
+    def _again(self, earlier: Fit, base: Fit) -> Candidate:
+        """A model the first pass fitted, fitted again with these weights from where that
+        pass left it and from its base here.
+
+        Only the floor near the chain's modes moved, so the earlier optimum is a start
+        beside the new one: searching the chain grid again (most of a bent model's cost)
+        finds the same basin. Its sensor clock keeps the form that pass chose.
+        """
+        model = Model(earlier.model.spec, self.obs)
+        start = _transplant(model, base)
+        result = fit(model, [earlier.params.copy(), start], keep=2)
+        if result.chi2 > base.chi2:
+            kept = polish(model, start)  # never worse than the model it extends
+            if kept.chi2 < result.chi2:
+                result = kept
+        return self._candidate(result)
 
     def best(self, candidates: Iterable[Candidate]) -> Candidate:
         return min(candidates, key=lambda c: c.held.total)
@@ -1232,11 +1262,13 @@ def diagnose_observations(obs: Observations, progress: Callable[[str], None] | N
             obs = with_axes_checked(obs)
         fits = nominal if nominal is not None else fit_nominal(obs)
         around: tuple[frozenset[Effect], tuple[Effect, ...]] | None = None
+        previous: Search | None = None  # the first pass, whose fits start the second's
         for _ in range(2):
             # Every model is judged with the weights the nominal fit settled (its floor).
             nominal_fit = fits.balanced
             base = Candidate(nominal_fit.model.spec, nominal_fit, held_out(nominal_fit))
-            search = Search(nominal_fit.model.obs, base, fits.free, progress)
+            search = Search(nominal_fit.model.obs, base, fits.free, progress, previous)
+            previous = search
             extended, named, rounds, left, candidates = name_effects(search, progress, around)
             if not extended.effects or around is not None:
                 break

@@ -44,6 +44,8 @@ HELD_TRUST = 4.0
 values) is checked on the model itself (``held_out``)."""
 HELD_SHRINK = (1.0, 0.5, 0.25, 0.125, 0.0)
 """Fractions of the Gauss-Newton step tried when the linear prediction is not trusted."""
+TOURNAMENT_NFEV = 12
+"""Evaluations of the short polish that picks among many starts (``best_of``)."""
 PUSH_CHI2 = 9.0
 """A bound pressed this hard (χ² it would give back, 3σ) is a finding, not a rest."""
 
@@ -57,6 +59,7 @@ class Fit:
     residuals: NDArray[np.float64]  # weighted, unit variance per part
     jacobian: NDArray[np.float64]
     active: NDArray[np.int8]  # −1 at the lower bound, +1 at the upper, 0 inside
+    converged: bool = True  # False: the polish ran out of evaluations first
 
     @property
     def chi2(self) -> float:
@@ -252,28 +255,64 @@ def polish(model: Model, x0: NDArray[np.float64], max_nfev: int = _MAX_NFEV) -> 
         xtol=_FTOL,
     )
     return Fit(model, result.x, result.fun, result.jac,
-               np.asarray(result.active_mask, dtype=np.int8))
+               np.asarray(result.active_mask, dtype=np.int8), converged=result.status > 0)
 
 
 def fit(model: Model, starts: list[NDArray[np.float64]], *, keep: int = 2,
-        max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None) -> Fit:
+        max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None,
+        finalists: int | None = None) -> Fit:
     """Bounded least squares from the ``keep`` most promising starts, and from every
     ``estimated`` one (a start the data themselves point to, which a ranking by χ² before
-    the search could pass over); the best result."""
+    the search could pass over); the best result (``best_of``)."""
+    chosen = chosen_starts(model, starts, keep, estimated)
+    if not chosen:
+        return _unevaluated(model, starts)
+    return best_of(model, chosen, max_nfev=max_nfev, finalists=finalists)
+
+
+def chosen_starts(model: Model, starts: list[NDArray[np.float64]], keep: int,
+                  estimated: list[NDArray[np.float64]] | None = None
+                  ) -> list[NDArray[np.float64]]:
+    """``fit``'s starts: the ``keep`` best of ``starts`` and every ``estimated`` one, each
+    with its linear parameters solved (those that do not evaluate are dropped)."""
+    ranked = screen(model, starts)[:keep] + screen(model, estimated or [])
+    return [x for chi2, x in ranked if math.isfinite(chi2)]
+
+
+def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = _MAX_NFEV,
+            finalists: int | None = None) -> Fit:
+    """The best polish from ``chosen``; with ``finalists``, each is first polished for
+    ``TOURNAMENT_NFEV`` evaluations and only that many of the best go on.
+
+    A few evaluations sort the starts far better than their χ² before any polish (a
+    chain a little off its modes then ranks below one with none in band), and most of a
+    full polish is spent creeping along the valley of the start it began in: a model
+    with many starts (a bent nominal's regridded chain, the group's own estimates, the
+    unbent chain) spends its budget on the few that lead somewhere.
+    """
     best: Fit | None = None
-    chosen = screen(model, starts)[:keep] + screen(model, estimated or [])
-    for chi2, x0 in chosen:
-        if not math.isfinite(chi2):
-            continue
+    if finalists is not None and len(chosen) > finalists:
+        short = sorted((polish(model, x, TOURNAMENT_NFEV) for x in chosen),
+                       key=lambda f: f.chi2)
+        best = short[0]
+        # A finalist whose short polish already converged has nothing left to gain.
+        chosen = [f.params for f in short[:finalists] if not f.converged]
+    for x0 in chosen:
         candidate = polish(model, x0, max_nfev)
         if best is None or candidate.chi2 < best.chi2:
             best = candidate
     if best is None:
-        # Every start failed to evaluate: report the first as it is (the caller sees χ²).
-        x0 = np.clip(starts[0], *_inside(model))
-        r = np.nan_to_num(model.residuals(x0), nan=1e6, posinf=1e6, neginf=-1e6)
-        best = Fit(model, x0, r, np.zeros((r.size, x0.size)), np.zeros(x0.size, np.int8))
+        return _unevaluated(model, chosen)
     return best
+
+
+def _unevaluated(model: Model, starts: list[NDArray[np.float64]]) -> Fit:
+    """Every start failed to evaluate: the first (or the model's own start) as it is,
+    so the caller sees its χ²."""
+    x0 = np.clip(starts[0] if starts else model.layout.start(), *_inside(model))
+    r = np.nan_to_num(model.residuals(x0), nan=1e6, posinf=1e6, neginf=-1e6)
+    return Fit(model, x0, r, np.zeros((r.size, x0.size)), np.zeros(x0.size, np.int8),
+               converged=False)
 
 
 @dataclass(frozen=True)
