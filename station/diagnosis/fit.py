@@ -259,15 +259,14 @@ def polish(model: Model, x0: NDArray[np.float64], max_nfev: int = _MAX_NFEV) -> 
 
 
 def fit(model: Model, starts: list[NDArray[np.float64]], *, keep: int = 2,
-        max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None,
-        finalists: int | None = None) -> Fit:
+        max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None) -> Fit:
     """Bounded least squares from the ``keep`` most promising starts, and from every
     ``estimated`` one (a start the data themselves point to, which a ranking by χ² before
     the search could pass over); the best result (``best_of``)."""
     chosen = chosen_starts(model, starts, keep, estimated)
     if not chosen:
         return _unevaluated(model, starts)
-    return best_of(model, chosen, max_nfev=max_nfev, finalists=finalists)
+    return best_of(model, chosen, max_nfev=max_nfev)
 
 
 def chosen_starts(model: Model, starts: list[NDArray[np.float64]], keep: int,
