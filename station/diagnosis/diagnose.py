@@ -637,14 +637,20 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
         chosen += chosen_starts(model, [unbent, *(model.with_values(unbent, v) for e in added
                                                   if e in GROUP_STARTS
                                                   for v in GROUP_STARTS[e](model, unbent))], 2)
-    result = best_of(model, chosen, finalists=FINALISTS)
-    if result.chi2 > base.chi2:
-        # Every start had its linear parameters solved again, which can lose the base's
-        # own point; a larger model must never fit worse than the one it extends.
-        kept = polish(model, start)
-        if kept.chi2 < result.chi2:
-            result = kept
-    return result
+    return never_worse(model, best_of(model, chosen, finalists=FINALISTS), base, start)
+
+
+def never_worse(model: Model, result: Fit, base: Fit, start: NDArray[np.float64]) -> Fit:
+    """``result``, or when it fits worse than ``base`` a polish from ``start`` (the base's
+    own point in ``model``) if that does better.
+
+    Every start had its linear parameters solved again, which can lose the base's own
+    point; a larger model must never fit worse than the one it extends.
+    """
+    if result.chi2 <= base.chi2:
+        return result
+    kept = polish(model, start)
+    return kept if kept.chi2 < result.chi2 else result
 
 
 # --------------------------------------------------------------------------- settling
@@ -1009,11 +1015,7 @@ class Search:
         model = Model(earlier.model.spec, self.obs)
         start = _transplant(model, base)
         result = fit(model, [earlier.params.copy(), start], keep=2)
-        if result.chi2 > base.chi2:
-            kept = polish(model, start)  # never worse than the model it extends
-            if kept.chi2 < result.chi2:
-                result = kept
-        return self._candidate(result)
+        return self._candidate(never_worse(model, result, base, start))
 
     def best(self, candidates: Iterable[Candidate]) -> Candidate:
         return min(candidates, key=lambda c: c.held.total)
