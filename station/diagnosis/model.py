@@ -40,6 +40,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
+from typing import Generic, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -436,7 +437,7 @@ class Motion:
     i_a: NDArray[np.float64]
     i_b: NDArray[np.float64]
     modulation: NDArray[np.float64]  # once-per-revolution factor per segment (S, 1)
-    _powers: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
+    _powers: dict[int, NDArray[np.complex128]] = field(
         default_factory=dict)
 
     def harmonic(self, j: int, shift: int = 0) -> tuple[NDArray[np.float64],
@@ -444,13 +445,19 @@ class Motion:
         """cos and sin of j·(θe − shift·π/2) on the grid, by powers of e^{jθe}: every
         term group needs several multiples of the rotor's angle, and trigonometry of
         each would cost more than the rest of an evaluation."""
-        if j not in self._powers:
-            z = self.cos_te + 1j * self.sin_te
-            power = z
-            for _ in range(j - 1):
+        powers = self._powers
+        if j not in powers:
+            if not powers:
+                powers[1] = self.cos_te + 1j * self.sin_te
+            z = powers[1]
+            # On from the highest power already made: the same products in the same
+            # order as from z itself, so the same numbers, with fewer of them.
+            lower = max(i for i in powers if i < j)
+            power = powers[lower]
+            for _ in range(j - lower):
                 power = power * z
-            self._powers[j] = (power.real, power.imag)
-        c, s = self._powers[j]
+            powers[j] = power
+        c, s = powers[j].real, powers[j].imag
         turn = (j * shift) % 4  # e^{-i·turn·π/2}
         if turn == 0:
             return c, s
@@ -459,6 +466,48 @@ class Motion:
         if turn == 2:
             return -c, -s
         return -s, c
+
+
+SENSOR_KEYS = ("sensor_a1_ms", "sensor_a2_ms2", "clock_drift_ppm", "clock_phase")
+"""What the sensor's response is made of (``Model.sensor_response``)."""
+MEASURED_KEYS = ("axis_mix", "sensor_bend")
+"""What the measured tangential motion is corrected with (``Model.measured``)."""
+CURRENT_KEYS = ("amp_offset_mA", "amp_gain_error", "distortion", "current_lag_ms")
+"""What the currents the drive made are made of (``Model.current_coefficients``)."""
+CHAIN_KEYS = ("log_rotor_hz", "rotor_damping_ratio", "log_load_ratio", "log_belt_hz",
+              "belt_damping_ratio", "load_damping_ratio", "coupling_fraction",
+              "log_coupling_hz", "coupling_damping_ratio")
+"""What the chain's inertias, springs and dampers are made of (``Model.stages``)."""
+FRICTION_KEYS = ("friction_coulomb", "log_friction_smoothing")
+"""What the load's friction is made of, beside the load's motion (``Model.friction_torque``)."""
+
+_T = TypeVar("_T")
+
+
+class _Memo(Generic[_T]):
+    """The last two values of a piece of the model that reads only a few parameters.
+
+    A finite-difference Jacobian moves one parameter at a time, so every column finds
+    all but the pieces that parameter enters as the base point left them: the sensor's
+    response with a drifting clock, the currents, the chain's transfer are then made
+    once per Jacobian instead of once per column. Two entries: the base point's, and
+    the column's that moved it. A parameter that enters a kept piece must be among its
+    keys (the ``*_KEYS`` above), or the piece goes stale: a test compares a model with
+    every group against one made afresh for each evaluation.
+    """
+
+    def __init__(self, index: NDArray[np.intp]) -> None:
+        self.index = index
+        self.entries: list[tuple[bytes, _T]] = []
+
+    def get(self, p: NDArray[np.float64], compute: Callable[[], _T]) -> _T:
+        key = p[self.index].tobytes()
+        for known, value in self.entries:
+            if known == key:
+                return value
+        value = compute()
+        self.entries = [(key, value), *self.entries[:1]]
+        return value
 
 
 class Model:
@@ -497,6 +546,21 @@ class Model:
         self._clock_n = self._clock_samples()
         self.clock_middle = clock_middle(obs)
         self._last: tuple[NDArray[np.float64], Motion] | None = None
+        sensor = (*SENSOR_KEYS, *MEASURED_KEYS)
+        self._sensor: _Memo[NDArray[np.complex128]] = self._memo(SENSOR_KEYS)
+        self._sensor_beyond: _Memo[NDArray[np.complex128]] = self._memo(SENSOR_KEYS)
+        self._alpha: _Memo[tuple[NDArray[np.complex128], NDArray[np.complex128],
+                                 NDArray[np.complex128] | None]] = self._memo(sensor)
+        self._friction: _Memo[tuple[NDArray[np.complex128], NDArray[np.float64],
+                                    NDArray[np.float64]]] = self._memo((*sensor, *FRICTION_KEYS))
+        self._chain: _Memo[tuple[Transfer, NDArray[np.complex128] | None]] = self._memo(
+            CHAIN_KEYS)
+        self._coefficients: _Memo[tuple[NDArray[np.float64], NDArray[np.complex128],
+                                        NDArray[np.float64], NDArray[np.complex128]]] = (
+            self._memo(CURRENT_KEYS))
+        self._currents: _Memo[tuple[NDArray[np.float64], NDArray[np.float64]]] = self._memo(
+            CURRENT_KEYS)
+        self._residuals: _Memo[NDArray[np.float64]] = _Memo(np.arange(self.layout.size))
         # The measured orders above K: part of the swing, never of the residual.
         beyond = obs.beyond if obs.beyond is not None and obs.beyond.size else None
         self.beyond = beyond
@@ -506,6 +570,12 @@ class Model:
             self.jw_beyond: NDArray[np.complex128] = np.asarray(
                 1j * obs.omega[:, None] * kb[None, :], dtype=np.complex128)
             self.synth_beyond = np.exp(1j * np.outer(kb, x))
+
+    def _memo(self, names: tuple[str, ...]) -> _Memo[_T]:
+        """A memo keyed on the named blocks this model has."""
+        every = np.arange(self.layout.size)
+        parts = [every[self.layout.slices[n]] for n in names if self.layout.has(n)]
+        return _Memo(np.concatenate(parts) if parts else np.zeros(0, dtype=np.intp))
 
     # ------------------------------------------------------------------ pieces
     def with_values(self, p: NDArray[np.float64], values: dict[str, list[float]]
@@ -582,6 +652,11 @@ class Model:
                         ) -> NDArray[np.complex128]:
         """What the sensor (its low-pass, its clock) makes of each order, (S, K); of the
         orders above the modelled ones with ``beyond``."""
+        memo = self._sensor_beyond if beyond else self._sensor
+        return memo.get(p, lambda: self._sensor_response(p, beyond))
+
+    def _sensor_response(self, p: NDArray[np.float64], beyond: bool
+                         ) -> NDArray[np.complex128]:
         a1 = self._scalar(p, "sensor_a1_ms") * 1e-3
         a2 = self._scalar(p, "sensor_a2_ms2") * 1e-6
         s, k = (self.jw_beyond, self.k_beyond) if beyond else (self.jw, self.k)
@@ -650,6 +725,11 @@ class Model:
             NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64],
             NDArray[np.complex128]]:
         """Each phase as DC plus harmonics: (DC (S, 1), harmonics (S, H)) for A and B."""
+        return self._coefficients.get(p, lambda: self._current_coefficients(p))
+
+    def _current_coefficients(self, p: NDArray[np.float64]) -> tuple[
+            NDArray[np.float64], NDArray[np.complex128], NDArray[np.float64],
+            NDArray[np.complex128]]:
         amp_off = self._p(p, "amp_offset_mA") * 1e-3
         gain = (1.0 + self._p(p, "amp_gain_error"))[None, :] * self.trim_gain  # (S, 2)
         ga = gain[:, :1] * self.amp
@@ -670,6 +750,10 @@ class Model:
 
     def currents(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64],
                                                         NDArray[np.float64]]:
+        return self._currents.get(p, lambda: self._currents_on_grid(p))
+
+    def _currents_on_grid(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                                 NDArray[np.float64]]:
         dc_a, ac_a, dc_b, ac_b = self.current_coefficients(p)
         i_a = dc_a + (ac_a @ self.current_synth).real
         i_b = dc_b + (ac_b @ self.current_synth).real
@@ -811,19 +895,32 @@ class Model:
                 above = above - undo[:, k:]
         return below, above
 
-    def _motion(self, p: NDArray[np.float64]) -> Motion:
+    def _load_motion(self, p: NDArray[np.float64]) -> tuple[
+            NDArray[np.complex128], NDArray[np.complex128], NDArray[np.complex128] | None]:
+        """The sensor's response, and the load's acceleration per order it says the
+        measurement was, below and above the modelled orders."""
         sensor = self.sensor_response(p)
         below, beyond = self.measured(p)
         alpha = below / (sensor * self.radius)
+        above = (None if beyond is None
+                 else beyond / (self.sensor_response(p, beyond=True) * self.radius))
+        return sensor, alpha, above
+
+    def _chain_transfer(self, p: NDArray[np.float64]
+                        ) -> tuple[Transfer, NDArray[np.complex128] | None]:
+        """The chain's transfer at the modelled orders, and its θ per α above them."""
         stages = self.stages(p)
-        transfer = self.transfer(stages)
-        force, slope, _ = self.friction_torque(p, alpha)
+        above = None if self.beyond is None else self.transfer(stages, self.jw_beyond).a
+        return self.transfer(stages), above
+
+    def _motion(self, p: NDArray[np.float64]) -> Motion:
+        sensor, alpha, above = self._alpha.get(p, lambda: self._load_motion(p))
+        transfer, theta_above = self._chain.get(p, lambda: self._chain_transfer(p))
+        force, slope, _ = self._friction.get(p, lambda: self.friction_torque(p, alpha))
         theta = transfer.a * alpha + transfer.b * force
         ripple = (theta @ self.synth).real  # rotor angle ripple on the grid (mech. rad)
-        if beyond is not None:
-            above = beyond / (self.sensor_response(p, beyond=True) * self.radius)
-            swing = self.transfer(stages, self.jw_beyond).a * above
-            ripple = ripple + (swing @ self.synth_beyond).real
+        if above is not None and theta_above is not None:
+            ripple = ripple + ((theta_above * above) @ self.synth_beyond).real
         rho = self._p(p, "load_angle_rad")[self.obs.condition]
         te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
         i_a, i_b = self.currents(p)
@@ -1098,7 +1195,12 @@ class Model:
 
     def residuals(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         """Weighted residuals for a least-squares solver: the harmonic errors' real and
-        imaginary parts, then each segment's torque balance."""
+        imaginary parts, then each segment's torque balance. (The last are kept: the
+        solver asks for them, then for the Jacobian, which starts from them.)"""
+        # A copy: a caller may scale or clean what it is given.
+        return self._residuals.get(p, lambda: self._residuals_at(p)).copy()
+
+    def _residuals_at(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         m = self.motion(p)
         made = self.torque(p, m)
         return self._flatten(self.error(p, m, made) * self.scale(p, m),

@@ -34,7 +34,15 @@ from station.diagnosis.diagnose import (
     nominal_starts,
     settle_fallback,
 )
-from station.diagnosis.fit import best_of, chosen_starts, fit, held_out, screen, sigmas
+from station.diagnosis.fit import (
+    best_of,
+    chosen_starts,
+    fit,
+    held_out,
+    jacobian,
+    screen,
+    sigmas,
+)
 from station.diagnosis.groups import (
     CLOCK_PEAKS,
     CLOCK_RATES_PPM,
@@ -47,6 +55,7 @@ from station.diagnosis.model import (
     ChainKind,
     Model,
     ModelSpec,
+    chain_for,
     saturation_shapes,
     saturation_slopes,
     sawtooth_mean,
@@ -555,3 +564,41 @@ class _Counting(Model):
     def residuals(self, p: np.ndarray) -> np.ndarray:
         self.calls += 1
         return super().residuals(p)
+
+
+@pytest.mark.parametrize("wraps", [False, True])
+def test_a_model_keeping_its_pieces_between_evaluations_gives_what_a_fresh_model_gives(
+        wraps: bool) -> None:
+    """A model keeps the pieces of its last evaluations that a parameter does not enter
+    (the sensor's response with its clock, the currents, the chain's transfer), since a
+    Jacobian moves one parameter at a time. What it keeps must never stand in for what
+    changed: along every column of a Jacobian and across jumps between points, a model
+    with every group, on a belt, gives to the bit what a model made afresh gives."""
+    obs, _ = _observed(Effect.FLUX_HARMONICS, 63)  # development seed 63 draws a belt
+    spec = ModelSpec(chain_for(obs.metadata.gear_ratio), effects=frozenset(Effect),
+                     clock_wraps=wraps, sensor_bend=True)
+    kept = Model(spec, obs)
+    low, high = kept.layout.bounds()
+    span = np.where(np.isfinite(high - low), np.minimum(high - low, 1.0), 1.0)
+    rng = np.random.default_rng(7)
+    points = [np.clip(kept.layout.start() + 0.1 * span * rng.standard_normal(span.size),
+                      low + 1e-6, high - 1e-6) for _ in range(3)]
+    fresh = _Fresh(kept)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for p in [*points, points[0]]:  # back to a point two others have passed
+            assert np.array_equal(kept.residuals(p), fresh.residuals(p))
+            assert np.array_equal(jacobian(kept, p), jacobian(fresh, p))
+            assert np.array_equal(kept.linear_design(p)[1], fresh.linear_design(p)[1])
+
+
+class _Fresh(Model):
+    """The same model made afresh for every evaluation: nothing kept from the last."""
+
+    def __init__(self, model: Model) -> None:
+        super().__init__(model.spec, model.obs)
+
+    def residuals(self, p: np.ndarray) -> np.ndarray:
+        return Model(self.spec, self.obs).residuals(p)
+
+    def linear_design(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return Model(self.spec, self.obs).linear_design(p)
