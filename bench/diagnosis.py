@@ -11,8 +11,9 @@ processes side by side. The time per recording is measured in the worker
 A class's "named exactly" counts its detectable trials: those named exactly, and
 the others whose concealed physics added at least ``VISIBLE_EXCESS`` (50) to the
 nominal fit's held-out χ² over a twin of the unit without it (same schedule,
-same noise; for a combination, each effect over the twin without that one:
-``station.sim.concealed.twin_excess``). The trials below that are
+same noise; for a combination, each effect over the twin without that one, both
+fitted with the other effect's group: ``station.sim.concealed.twin_excess``).
+The trials below that are
 counted apart and must not be given a wrong id; the share over every trial is
 reported too.
 

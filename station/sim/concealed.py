@@ -32,9 +32,10 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind, Trims
@@ -45,6 +46,9 @@ from station.recording import write_json_atomically
 from station.schedules import Schedule, random_characterization
 from station.sim.inprocess import record_in_process, simulate_timeline
 from station.sim.population import draw_unit
+
+if TYPE_CHECKING:  # the simulator side of this module must not need the diagnosis
+    from station.diagnosis.fit import HeldOut
 
 TRIAL_SEED_FLOOR: Final = 1_000_000
 """Seeds below this are for development; reported trials draw theirs above it."""
@@ -293,24 +297,25 @@ class Trial:
 
 
 def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
-    """What the concealed physics adds to the nominal model's held-out χ² over the same
-    unit without it, recorded with the same schedule and noise (``recorded`` is the trial's
-    own recording, as the diagnosis read it); for a combination, the least that any one of
-    its effects adds over the twin that lacks only that one.
+    """What the concealed physics adds to the held-out χ² over the same unit without it,
+    recorded with the same schedule and noise (``recorded`` is the trial's own recording,
+    as the diagnosis read it); for a combination, the least that any one of its effects
+    adds over the twin that lacks only that one.
 
     This is how the issue measures an effect's size ("an excess of about 133 over its
-    clean twin"). A combination is only as visible as its weakest part: a loop lag of
-    0.05 rad beside a current distortion that adds 800,000 is not seen by the distortion's
-    size. Every nominal fit is made here the same way (``nominal_of``): the diagnosis's own
-    ``fit.before`` may come from a nominal judged again with weights its chosen model set,
-    which a twin has no counterpart for. A twin's χ² per value is scaled to the trial's
-    count of values, since the two may keep different holds.
-    """
-    from station.diagnosis.diagnose import nominal_of  # noqa: PLC0415
-    from station.diagnosis.fit import held_out  # noqa: PLC0415
+    clean twin"): on the nominal model for a single effect. For a combination, on the
+    nominal model with the groups of the effects the twin keeps: those are what any
+    selection would already have named when it came to the last one. Measured on the
+    nominal model alone, a pair of strong effects made both fits so bad (χ² in the
+    millions, each bent its own way) that their difference said nothing, often less
+    than minus a thousand, and a pair a diagnosis missed was counted as invisible.
 
+    Every fit is made as the diagnosis first makes it (``nominal_of``, then ``fit_spec``):
+    its own ``fit.before`` may come from a nominal judged again with weights its chosen
+    model set, which a twin has no counterpart for. A twin's χ² per value is scaled to the
+    trial's count of values, since the two may keep different holds.
+    """
     concealed = plan.case.cls
-    mine = held_out(nominal_of(recorded)[1].balanced)
     twins = ([(concealed.effects - {e}, concealed.unnamed) for e in sorted(concealed.effects)]
              + [(concealed.effects, concealed.unnamed - {u})
                 for u in sorted(concealed.unnamed)])
@@ -320,10 +325,26 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
         run = simulate_timeline(twin, plan.schedule, seed=plan.case.seed, loss=plan.loss,
                                 substeps=PLANT_SUBSTEPS,
                                 extra_metadata={"schedule": "characterization"})
-        other = held_out(nominal_of(run)[1].balanced)
+        mine = _held_out_with(recorded, effects)
+        other = _held_out_with(run, effects)
         excess = min(excess, mine.total - other.total / max(other.residuals.size, 1)
                      * mine.residuals.size)
     return excess
+
+
+def _held_out_with(recorded: Timeline, effects: frozenset[Effect]) -> HeldOut:
+    """The held-out residuals of the nominal model with ``effects``' groups, fitted to
+    ``recorded`` as the diagnosis fits them."""
+    from station.diagnosis.diagnose import fit_spec, nominal_of  # noqa: PLC0415
+    from station.diagnosis.fit import held_out  # noqa: PLC0415
+
+    _, nominal = nominal_of(recorded)
+    base = nominal.balanced
+    if not effects:
+        return held_out(base)
+    spec = replace(base.model.spec, effects=effects)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return held_out(fit_spec(base.model.obs, spec, base, nominal.free))
 
 
 def run_trial(case: Case, root: Path) -> Trial:

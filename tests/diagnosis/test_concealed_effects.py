@@ -100,7 +100,7 @@ def test_physics_below_detection_is_given_no_id_it_does_not_have(diagnosed: list
 
 
 @pytest.mark.parametrize(("effect", "seed", "visible"), [
-    # Development trials (below the floor): a belt unit's coupling far above what the
+    # Development trials (below the floor): a disk's coupling far above what the
     # schedule excites, and a strong reluctance spring on a disk.
     (Effect.LOAD_RESONANCE, 21, False),
     (Effect.RELUCTANCE_TORQUE, 24, True),
@@ -120,14 +120,28 @@ def test_a_trials_excess_over_its_clean_twin_says_whether_there_was_anything_to_
 
 
 def test_a_combination_is_only_as_visible_as_its_weakest_effect() -> None:
-    """Development seed 21's belt coupling is out of the schedule's reach (above): beside a
-    detent torque that adds millions to the nominal χ², the pair is still one that no
-    selection could name whole, and its twin without the coupling says so."""
+    """Development seed 21's coupling is barely within the schedule's reach (above: alone,
+    it adds nothing to the nominal fit). Beside a detent torque that adds tens of
+    thousands over its twin without it (23,502 when written), the pair is only as
+    visible as what the coupling adds once the detent is fitted (139 when written)."""
     plan = plan_trial(Case(TrialClass(frozenset({Effect.DETENT_TORQUE,
                                                  Effect.LOAD_RESONANCE})), 21))
     recorded = simulate_timeline(plan.unit, plan.schedule, seed=21, loss=plan.loss,
                                  substeps=PLANT_SUBSTEPS)
-    assert twin_excess(plan, recorded) < VISIBLE_EXCESS
+    assert twin_excess(plan, recorded) < 20 * VISIBLE_EXCESS
+
+
+def test_a_pair_of_strong_effects_is_measured_with_the_other_one_fitted() -> None:
+    """Flux harmonics beside a rotor eccentricity (development seed 11, a disk): the
+    nominal model fits both recordings so badly, each bent its own way, that the pair's
+    χ² less its twin's without the eccentricity was −312,884 when measured on it, and a
+    missed pair was counted as one with nothing to see. With the flux harmonics fitted on
+    both, the eccentricity adds thousands."""
+    plan = plan_trial(Case(TrialClass(frozenset({Effect.FLUX_HARMONICS,
+                                                 Effect.ROTOR_ECCENTRICITY})), 11))
+    recorded = simulate_timeline(plan.unit, plan.schedule, seed=11, loss=plan.loss,
+                                 substeps=PLANT_SUBSTEPS)
+    assert twin_excess(plan, recorded) > 20 * VISIBLE_EXCESS
 
 
 def test_the_extended_model_fits_held_out_data_better_whenever_it_models_more(
