@@ -48,6 +48,7 @@ from station.sim.inprocess import record_in_process, simulate_timeline
 from station.sim.population import draw_unit
 
 if TYPE_CHECKING:  # the simulator side of this module must not need the diagnosis
+    from station.diagnosis.diagnose import Nominal
     from station.diagnosis.fit import HeldOut
 
 TRIAL_SEED_FLOOR: Final = 1_000_000
@@ -315,30 +316,32 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
     model set, which a twin has no counterpart for. A twin's χ² per value is scaled to the
     trial's count of values, since the two may keep different holds.
     """
+    from station.diagnosis.diagnose import nominal_of  # noqa: PLC0415
+
     concealed = plan.case.cls
     twins = ([(concealed.effects - {e}, concealed.unnamed) for e in sorted(concealed.effects)]
              + [(concealed.effects, concealed.unnamed - {u})
                 for u in sorted(concealed.unnamed)])
+    own = nominal_of(recorded)[1]
     excess = math.inf
     for effects, unnamed in twins:
         twin = draw_unit(plan.case.seed, load=plan.unit.load, effects=effects, unnamed=unnamed)
         run = simulate_timeline(twin, plan.schedule, seed=plan.case.seed, loss=plan.loss,
                                 substeps=PLANT_SUBSTEPS,
                                 extra_metadata={"schedule": "characterization"})
-        mine = _held_out_with(recorded, effects)
-        other = _held_out_with(run, effects)
+        mine = _held_out_with(own, effects)
+        other = _held_out_with(nominal_of(run)[1], effects)
         excess = min(excess, mine.total - other.total / max(other.residuals.size, 1)
                      * mine.residuals.size)
     return excess
 
 
-def _held_out_with(recorded: Timeline, effects: frozenset[Effect]) -> HeldOut:
-    """The held-out residuals of the nominal model with ``effects``' groups, fitted to
-    ``recorded`` as the diagnosis fits them."""
-    from station.diagnosis.diagnose import fit_spec, nominal_of  # noqa: PLC0415
+def _held_out_with(nominal: Nominal, effects: frozenset[Effect]) -> HeldOut:
+    """The held-out residuals of the nominal model with ``effects``' groups, fitted as the
+    diagnosis fits them."""
+    from station.diagnosis.diagnose import fit_spec  # noqa: PLC0415
     from station.diagnosis.fit import held_out  # noqa: PLC0415
 
-    _, nominal = nominal_of(recorded)
     base = nominal.balanced
     if not effects:
         return held_out(base)
