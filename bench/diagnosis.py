@@ -12,10 +12,10 @@ A class's "named exactly" counts its detectable trials: those named exactly, and
 the others whose concealed physics added at least ``VISIBLE_EXCESS`` (50) to the
 nominal fit's held-out χ² over a twin of the unit without it (same schedule,
 same noise; for a combination, each effect over the twin without that one, both
-fitted with the other effect's group: ``station.sim.concealed.twin_excess``).
-The trials below that are
-counted apart and must not be given a wrong id; the share over every trial is
-reported too.
+fitted with the other effect's group: ``station.sim.concealed.twin_excess``;
+an excess below −50 is a failed fit, not invisible physics, and counts as a miss).
+The trials within ±50 are counted apart and must not be given a wrong id; the
+share over every trial is reported too.
 
 ``STATION_BENCH_DIAGNOSIS_PER_CLASS`` lowers the trial count for a quick look;
 the figures a note quotes come from the default.

@@ -293,8 +293,14 @@ class Trial:
     @property
     def detectable(self) -> bool:
         """Whether the concealed physics left enough for any selection to see (a trial named
-        exactly did, by the diagnosis's own significance test; a control has nothing to see)."""
-        return self.excess is None or self.excess >= VISIBLE_EXCESS
+        exactly did, by the diagnosis's own significance test; a control has nothing to see).
+
+        An excess far below zero measures the fits, not the physics: more physics cannot
+        leave the best fit better off by more than the fits' own scatter, so one of them
+        failed (a group that could not fit its own effect on the twin), and the trial
+        counts as one that could be named rather than one with nothing to see.
+        """
+        return self.excess is None or abs(self.excess) >= VISIBLE_EXCESS
 
 
 def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:

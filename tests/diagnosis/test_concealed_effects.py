@@ -144,6 +144,20 @@ def test_a_pair_of_strong_effects_is_measured_with_the_other_one_fitted() -> Non
     assert twin_excess(plan, recorded) > 20 * VISIBLE_EXCESS
 
 
+@pytest.mark.parametrize(("excess", "detectable"), [
+    (None, True),  # named exactly: the diagnosis's own test saw it
+    (3 * VISIBLE_EXCESS, True),
+    (0.5 * VISIBLE_EXCESS, False),
+    (-0.5 * VISIBLE_EXCESS, False),  # within the fits' scatter: nothing to see
+    (-1_201_076.0, True),  # a fit failed: no measure, so not excused (bench, session 13)
+])
+def test_a_miss_is_excused_only_by_an_excess_within_the_fits_scatter(
+        excess: float | None, detectable: bool) -> None:
+    cls = TrialClass(frozenset({Effect.FRICTION, Effect.SENSOR_CLOCK_DRIFT}))
+    trial = Trial(Case(cls, TRIAL_SEED_FLOOR), {"effects": []}, 1.0, 10.0, "disk", excess)
+    assert trial.detectable is detectable
+
+
 def test_the_extended_model_fits_held_out_data_better_whenever_it_models_more(
     diagnosed: list[Trial],
 ) -> None:
