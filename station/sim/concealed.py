@@ -307,7 +307,7 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
     """What the concealed physics adds to the held-out χ² over the same unit without it,
     recorded with the same schedule and noise (``recorded`` is the trial's own recording,
     as the diagnosis read it); for a combination, the least that any one of its effects
-    adds over the twin that lacks only that one.
+    adds over the twin that lacks only that one (``weakest_part``).
 
     This is how the issue measures an effect's size ("an excess of about 133 over its
     clean twin"): on the nominal model for a single effect. For a combination, on the
@@ -329,7 +329,7 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
              + [(concealed.effects, concealed.unnamed - {u})
                 for u in sorted(concealed.unnamed)])
     own = nominal_of(recorded)[1]
-    excess = math.inf
+    parts = []
     for effects, unnamed in twins:
         twin = draw_unit(plan.case.seed, load=plan.unit.load, effects=effects, unnamed=unnamed)
         run = simulate_timeline(twin, plan.schedule, seed=plan.case.seed, loss=plan.loss,
@@ -337,9 +337,20 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
                                 extra_metadata={"schedule": "characterization"})
         mine = _held_out_with(own, effects)
         other = _held_out_with(nominal_of(run)[1], effects)
-        excess = min(excess, mine.total - other.total / max(other.residuals.size, 1)
+        parts.append(mine.total - other.total / max(other.residuals.size, 1)
                      * mine.residuals.size)
-    return excess
+    return weakest_part(parts)
+
+
+def weakest_part(parts: list[float]) -> float:
+    """A combination's excess from its effects' own: the least of them that was measured.
+
+    A part far below zero is a failed fit and says nothing of its effect (``Trial.
+    detectable``); only when no part was measured does the failure stand, so that it
+    cannot excuse the miss.
+    """
+    measured = [x for x in parts if x > -VISIBLE_EXCESS]
+    return min(measured or parts, default=math.inf)
 
 
 def _held_out_with(nominal: Nominal, effects: frozenset[Effect]) -> HeldOut:

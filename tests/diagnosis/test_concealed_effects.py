@@ -45,6 +45,7 @@ from station.sim.concealed import (
     named,
     plan_trial,
     twin_excess,
+    weakest_part,
 )
 from station.sim.concealed import run_trial as run
 from station.sim.inprocess import simulate_timeline
@@ -156,6 +157,16 @@ def test_a_miss_is_excused_only_by_an_excess_within_the_fits_scatter(
     cls = TrialClass(frozenset({Effect.FRICTION, Effect.SENSOR_CLOCK_DRIFT}))
     trial = Trial(Case(cls, TRIAL_SEED_FLOOR), {"effects": []}, 1.0, 10.0, "disk", excess)
     assert trial.detectable is detectable
+
+
+@pytest.mark.parametrize(("parts", "excess"), [
+    ([23_502.0, 139.0], 139.0),  # only as visible as the weaker effect
+    ([12.0, -1_201_076.0], 12.0),  # a failed fit beside an invisible effect: excused
+    ([-478.0, -1_201_076.0], -1_201_076.0),  # nothing measured: the miss stands
+])
+def test_a_combination_is_as_visible_as_the_weakest_effect_that_was_measured(
+        parts: list[float], excess: float) -> None:
+    assert weakest_part(parts) == excess
 
 
 def test_the_extended_model_fits_held_out_data_better_whenever_it_models_more(
