@@ -147,11 +147,45 @@ class BusConfig:
         return f"CAN {self.interface}:{self.channel}"
 
 
+class Taps(can.Listener):
+    """Listeners that see every frame before canopen dispatches it.
+
+    They sit first on the notifier, so the frame that lets the station move on
+    (the last answer to a SYNC, counted by canopen's subscribers) has reached
+    every tap by then: a recording closed as soon as its run returns still
+    holds the run's last frame. Taps come and go between frames, never between
+    two listeners' calls for one frame.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._taps: tuple[can.Listener, ...] = ()
+
+    def add(self, *listeners: can.Listener) -> None:
+        with self._lock:
+            self._taps += listeners
+
+    def remove(self, *listeners: can.Listener) -> None:
+        with self._lock:
+            self._taps = tuple(tap for tap in self._taps if tap not in listeners)
+
+    def on_message_received(self, msg: can.Message) -> None:
+        # The notifier's thread: one tuple read, no lock taken per frame.
+        for tap in self._taps:
+            tap.on_message_received(msg)
+
+
 @contextmanager
 def open_network(
-    config: BusConfig | None = None, *, receive_poll_s: float = DEFAULT_RECEIVE_POLL_S
+    config: BusConfig | None = None,
+    *,
+    receive_poll_s: float = DEFAULT_RECEIVE_POLL_S,
+    taps: Taps | None = None,
 ) -> Iterator[canopen.Network]:
-    """A connected canopen network that is always disconnected on leaving, even on error."""
+    """A connected canopen network that is always disconnected on leaving, even on error.
+
+    ``taps``, if given, see each frame before canopen does.
+    """
     config = config if config is not None else BusConfig()
     options: dict[str, Any] = dict(config.options)
     try:
@@ -163,6 +197,9 @@ def open_network(
     network = canopen.Network(bus)
     # The notifier thread only notices a stop request between reads.
     network.NOTIFIER_CYCLE = receive_poll_s
+    if taps is not None:
+        # canopen types these as its own listener, but hands them to can.Notifier as is.
+        network.listeners.insert(0, taps)  # type: ignore[arg-type]
     try:
         network.connect()
         yield network

@@ -23,7 +23,7 @@ import tomllib
 import uuid
 from collections.abc import Iterator, Mapping
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Any, Final
@@ -40,6 +40,7 @@ from drivers.canbus import (
     PeriodicSync,
     SteppedSync,
     SyncClock,
+    Taps,
     bench_tpdo_cob_ids,
     open_network,
 )
@@ -347,7 +348,7 @@ class BenchSession:
     network: canopen.Network
     fixture: Fixture
     bus_monitor: BusMonitor
-    _listeners: list[can.Listener] = field(default_factory=list)
+    taps: Taps
 
     def supervise(self) -> None:
         """Raise if the bus went off or a device fell silent or rebooted (no bus traffic).
@@ -395,17 +396,18 @@ class BenchSession:
 
     @contextmanager
     def listening(self, *listeners: can.Listener) -> Iterator[None]:
-        """Let ``listeners`` see every frame on the bus for the duration of the block."""
-        notifier = self.network.notifier
-        if notifier is None:
+        """Let ``listeners`` see every frame on the bus for the duration of the block.
+
+        They see a frame before the clock counts it, so when the block ends
+        they have seen every answer to every SYNC the run sent.
+        """
+        if self.network.notifier is None:
             raise DeviceError(self.spec.name, "the CAN network is not connected")
-        for listener in listeners:
-            notifier.add_listener(listener)
+        self.taps.add(*listeners)
         try:
             yield
         finally:
-            for listener in listeners:
-                notifier.remove_listener(listener)
+            self.taps.remove(*listeners)
 
 
 def _sim_fixture(bench: SimBench) -> Fixture:
@@ -436,13 +438,31 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
     """Connect to the bench with the unit ``serial`` on it; everything is released on leaving.
 
     Closing order matters: the clock stops first, then the drive is disabled
-    (its ``close``), then the bus goes, then (simulated) the devices.
+    (its ``close``), then (simulated) the devices go, then the bus.
     """
     with ExitStack() as stack:
         sim_bench: SimBench | None = None
         if spec.sim is not None:
-            settings = spec.sim
             channel = f"station-sim-{uuid.uuid4().hex}"
+            bus = BusConfig(interface=VIRTUAL_INTERFACE, channel=channel,
+                            options={_RECEIVE_OWN: True})
+        else:
+            base = spec.bus if spec.bus is not None else BusConfig.from_python_can_config()
+            # The station records the SYNCs it sends itself, so it must hear its own frames.
+            options = {_RECEIVE_OWN: True, **base.options}
+            bus = BusConfig(base.interface, base.channel, base.bitrate, options)
+        # The station's bus joins first. python-can's virtual bus hands a frame to
+        # the channel's buses in the order they joined: were the devices first, a
+        # station thread preempted half-way through sending a SYNC would hear the
+        # devices' answers before its own echo, and record them a sample early.
+        # On a real bus the echo can never trail the answers to it.
+        taps = Taps()
+        network = stack.enter_context(open_network(bus, taps=taps))
+        monitor = BusMonitor(bus.describe())
+        if network.notifier is not None:
+            network.notifier.add_listener(monitor)
+        if spec.sim is not None:
+            settings = spec.sim
             sim_bench = stack.enter_context(SimBench(SimBenchConfig(
                 serial=settings.unit or serial.label,
                 load=settings.load,
@@ -458,17 +478,6 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
                              else DEFAULT_UNIT_ID),
                 faults=settings.faults,
             )))
-            bus = BusConfig(interface=VIRTUAL_INTERFACE, channel=channel,
-                            options={_RECEIVE_OWN: True})
-        else:
-            base = spec.bus if spec.bus is not None else BusConfig.from_python_can_config()
-            # The station records the SYNCs it sends itself, so it must hear its own frames.
-            options = {_RECEIVE_OWN: True, **base.options}
-            bus = BusConfig(base.interface, base.channel, base.bitrate, options)
-        network = stack.enter_context(open_network(bus))
-        monitor = BusMonitor(bus.describe())
-        if network.notifier is not None:
-            network.notifier.add_listener(monitor)
         drive = stack.enter_context(_open_drive(spec, network, sim_bench))
         sensor = stack.enter_context(CanopenSensor(network, spec.sensor_node))
         clock: SyncClock
@@ -485,6 +494,6 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
         fixture = spec.fixture or (_sim_fixture(sim_bench) if sim_bench is not None else None)
         if fixture is None:
             raise BenchFileError(f"bench {spec.name}: no fixture geometry")
-        session = BenchSession(spec, drive, sensor, clock, network, fixture, monitor)
+        session = BenchSession(spec, drive, sensor, clock, network, fixture, monitor, taps)
         clock.supervise(session.supervise)
         yield session

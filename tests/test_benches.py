@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
+import can
 import pytest
 
-from drivers.canbus import BusConfig
+from drivers.canbus import BusConfig, BusMonitor, bench_tpdo_cob_ids
+from drivers.cia301 import SYNC_COB_ID
 from drivers.modbus_map import ModbusLink
 from station.benches import (
     BENCH_ENV,
@@ -19,10 +22,12 @@ from station.benches import (
     SimSettings,
     Transport,
     load_bench,
+    open_bench,
     parse_bench,
 )
 from station.core import Axis, Effect, LoadKind
 from station.errors import ExitCode, InputError
+from station.serials import parse_serial
 
 REAL = """\
 name = "line3"
@@ -319,3 +324,37 @@ def test_a_bench_file_that_is_not_utf8_is_refused(tmp_path: Path) -> None:
     path.write_bytes('name = "bänk"\n'.encode("latin-1"))
     with pytest.raises(BenchFileError, match=r"latin1\.toml"):
         load_bench(str(path))
+
+
+class _Heard(can.Listener):
+    def __init__(self) -> None:
+        self.frames: list[int] = []
+
+    def on_message_received(self, msg: can.Message) -> None:
+        self.frames.append(msg.arbitration_id)
+
+
+def test_a_listener_has_heard_every_answer_to_every_sync_when_the_run_returns(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A recording closes as soon as its run returns. The station's other listeners
+    are slowed here after every answer, so a listener served after them would
+    still be waiting for the last answer when the block ends."""
+    monitor = BusMonitor.on_message_received
+
+    def slow_monitor(self: BusMonitor, msg: can.Message) -> None:
+        if msg.arbitration_id != SYNC_COB_ID:
+            time.sleep(0.02)
+        monitor(self, msg)
+
+    monkeypatch.setattr(BusMonitor, "on_message_received", slow_monitor)
+    heard = _Heard()
+    with open_bench(SIM_SPEC, parse_serial("SN123")) as session:
+        session.sensor.set_range_g(2)
+        with session.listening(heard):
+            session.clock.advance(5)
+    answers = set(bench_tpdo_cob_ids(SIM_SPEC.drive_node, SIM_SPEC.sensor_node))
+    after_syncs = [f for f in heard.frames if f == SYNC_COB_ID or f in answers]
+    assert after_syncs.count(SYNC_COB_ID) == 5
+    assert len(after_syncs) == 5 * (1 + len(answers))
+    assert after_syncs[-1] in answers

@@ -5,13 +5,16 @@ from __future__ import annotations
 import json
 import struct
 import sys
+import time
 from collections.abc import Iterator
+from copy import deepcopy
 from dataclasses import replace
 from itertools import pairwise
 from pathlib import Path
 
 import can
 import pytest
+from can.interfaces import virtual
 
 from station.cli import main
 from station.core import NOMINAL_TRIMS, Effect, LoadKind, Trims
@@ -324,3 +327,35 @@ def test_unsupported_sensor_range_exits_2(
     assert code == 2
     assert "--range-g must be one of" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_sync_is_recorded_before_the_answers_to_it_however_late_the_station_hears_itself(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On a loaded machine the thread sending a SYNC can be preempted half-way through
+    python-can's virtual send, which hands the frame to each bus on the channel in turn.
+    Were the devices handed it before the station's own echo, their answers would be
+    recorded ahead of their SYNC and every sample after would shift by one. Here each
+    SYNC copy is slowed so far that the devices always answer within the gap."""
+    def slow_sync_copy(msg: can.Message) -> can.Message:
+        if msg.arbitration_id == SYNC:
+            time.sleep(0.005)
+        return deepcopy(msg)
+
+    monkeypatch.setattr(virtual, "deepcopy", slow_sync_copy)
+    out = tmp_path / "rec" / "run.blf"
+    out.parent.mkdir()
+    v = velocity_for(20.0, 256)
+    schedule = Schedule(
+        "tiny",
+        (
+            Hold(Phase.STANDSTILL, 0, 1000, NOMINAL_TRIMS, 20),
+            Hold(Phase.BASELINE, v, 1000, NOMINAL_TRIMS, 40),
+            Hold(Phase.STOP, 0, 1000, NOMINAL_TRIMS, 10),
+        ),
+    )
+    record_schedule(_request(out, tmp_path), schedule)
+    samples = list(_samples(out))
+    assert len(samples) == schedule.cycles
+    for _, frames in samples:
+        assert {SENSOR_TPDO1, DRIVE_TPDO1, DRIVE_TPDO2} <= set(frames)
