@@ -12,7 +12,8 @@ A class's "named exactly" counts its detectable trials: those named exactly, and
 the others whose concealed physics added at least ``VISIBLE_EXCESS`` (50) to the
 nominal fit's held-out χ² over a twin of the unit without it (same schedule,
 same noise; for a combination, each effect over the twin without that one, both
-fitted with the other effect's group: ``station.sim.concealed.twin_excess``;
+fitted with the other effect's group; a belt's coupling leaves its compliance in the
+twin's belt: ``station.sim.concealed.twin_excess``, ``nominal_equivalent``;
 an excess below −50 is a failed fit, not invisible physics, and counts as a miss).
 The trials within ±50 are counted apart and must not be given a wrong id; the
 share over every trial is reported too.

@@ -8,12 +8,16 @@ import math
 import pytest
 
 from station.core import Effect
+from station.physics.params import UnitParams
+from station.physics.plant import modal_analysis
 from station.sim.concealed import (
     FRICTION_HEADROOM,
     Case,
     TrialClass,
+    nominal_equivalent,
     plan_trial,
 )
+from station.sim.population import draw_unit
 
 
 @pytest.mark.parametrize("seed", [26, 28])
@@ -35,3 +39,31 @@ def test_friction_with_its_viscous_part_stays_within_reach_of_every_moving_hold(
         worst = max(worst, needed / capacity)
     assert worst <= FRICTION_HEADROOM + 1e-9
 
+
+
+def _lowest_mode_hz(unit: UnitParams) -> float:
+    return modal_analysis(unit, float(unit.rated_current_mA))[0].frequency_hz
+
+
+def test_a_belt_units_twin_without_its_coupling_keeps_the_couplings_compliance_in_the_belt(
+) -> None:
+    """Development pair detent+load_resonance@1, a belt: the coupling's compliance in series
+    with the belt sets the chain's low mode, which a twin with the belt alone would move
+    far (CLI.md: a declared belt's compliance is nominal physics)."""
+    cls = TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE}))
+    unit = plan_trial(Case(cls, 1)).unit
+    assert unit.mechanics.belt is not None and unit.mechanics.coupling is not None
+    bare = draw_unit(1, load=unit.load, effects=frozenset({Effect.DETENT_TORQUE}))
+    twin = nominal_equivalent(bare, unit)
+    assert twin.mechanics.coupling is None
+    assert twin.motor == unit.motor
+    assert _lowest_mode_hz(twin) == pytest.approx(_lowest_mode_hz(unit), rel=0.05)
+    assert _lowest_mode_hz(bare) > 2 * _lowest_mode_hz(unit)
+
+
+def test_a_disk_units_twin_without_its_coupling_is_the_rigid_disk() -> None:
+    cls = TrialClass(frozenset({Effect.LOAD_RESONANCE}))
+    unit = plan_trial(Case(cls, 21)).unit
+    assert unit.mechanics.disk is not None and unit.mechanics.coupling is not None
+    bare = draw_unit(21, load=unit.load, effects=frozenset())
+    assert nominal_equivalent(bare, unit) is bare
