@@ -6,9 +6,10 @@ a period it integrates the nonlinear model at a fixed step with semi-implicit
 (symplectic) Euler: trim sweeps swing the rotor far enough that a linearised
 model would lie, and a fixed step keeps runs reproducible bit for bit.
 
-The inner loop is scalar Python on ``math`` on purpose: per-step numpy calls
-cost microseconds each, which would make a ten-minute calibration schedule a
-ten-minute simulation. Everything that can be is precomputed in ``__init__``.
+The inner loop is scalar code on purpose (per-step numpy calls cost
+microseconds each), compiled by numba in ``kernel``; everything that can be
+is precomputed in ``__init__``, and this class keeps what happens once per
+SYNC: commands, the sensor's sampling and its counts.
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ from station.core import (
     Axis,
     Trims,
 )
+from station.physics import kernel as k_
+from station.physics.kernel import TABLE_SIZE
 from station.physics.motor import QUARTER_PITCH_ELECTRICAL, MotorParams, magnetic_stiffness
 from station.physics.params import (
     AmplifierParams,
@@ -233,27 +236,21 @@ def _lag_coefficients(bandwidth_hz: float | None, step_s: float) -> tuple[float,
     return a, b - a, 1.0 - b
 
 
-TABLE_SIZE = 8192
-"""Points per period of the harmonic tables; linear interpolation then errs by
-less than (j·2π/8192)²/8 ≈ 2e-5 of an order-j harmonic's amplitude (j ≤ 8)."""
+def _periodic_tables(terms: dict[int, list[complex]], slots: int) -> NDArray[np.float64]:
+    """Tables of Re Σ_j w_j·e^(i·j·φ) over one period, one row per slot, with a wrap point;
+    no rows without terms.
 
-
-def _periodic_tables(terms: dict[int, list[complex]], slots: int) -> tuple[list[float], ...] | None:
-    """Tables of Re Σ_j w_j·e^(i·j·φ) over one period, one per slot, with a wrap point.
-
-    Evaluating a handful of harmonics exactly per step costs microseconds in
-    complex Python arithmetic; an interpolated table costs a few list reads.
+    Evaluating a handful of harmonics exactly per step costs far more than an
+    interpolated table's two reads.
     """
     if not terms:
-        return None
+        return np.zeros((0, TABLE_SIZE + 1))
     phi = np.arange(TABLE_SIZE + 1) * (2.0 * math.pi / TABLE_SIZE)
-    tables = []
+    tables = np.zeros((slots, TABLE_SIZE + 1))
     for slot in range(slots):
-        values = np.zeros(TABLE_SIZE + 1)
         for order, weights in terms.items():
-            values += (weights[slot] * np.exp(1j * order * phi)).real
-        tables.append(values.tolist())
-    return tuple(tables)
+            tables[slot] += (weights[slot] * np.exp(1j * order * phi)).real
+    return tables
 
 
 MAX_STEP_PHASE = 0.7
@@ -304,14 +301,15 @@ class Plant:
         self._kt = motor.kt_Nm_per_A
         self._chain = build_chain(unit)
         n = len(self._chain.inertias)
-        self._theta = [0.0] * n
-        self._omega = [0.0] * n
+        self._ndof = n
+        # Angles, speeds and currents carried between periods, and what a period reports.
+        self._state = np.zeros(k_.N_STATE)
+        self._command = np.zeros(k_.N_COMMAND)
         self._setup_torque(motor)
         self._setup_reshaping(motor)
         self._setup_amplifier(unit.amplifier)
         self._setup_sensor(unit, seed)
-        self._last_torque = 0.0
-        self._const = self._loop_constants()
+        self._constants, self._switches = self._loop_constants()
 
     # ----------------------------------------------------------------- set-up
     def _setup_torque(self, motor: MotorParams) -> None:
@@ -343,7 +341,7 @@ class Plant:
                 add(d.order, 2, coeff)
         self._harmonics = _periodic_tables(terms, 3)
         detent_table = _periodic_tables(detent, 1)
-        self._detent_alone = detent_table[0] if detent_table else ()
+        self._detent_alone = detent_table[0] if detent_table.size else np.zeros(0)
         self._reluctance = nr * motor.L1_H
 
     def _setup_reshaping(self, motor: MotorParams) -> None:
@@ -358,8 +356,8 @@ class Plant:
         sat = motor.saturation_current_A
         ecc = motor.eccentricity
         self._reshaping = (
-            sat is not None, 1.0 / (sat * sat) if sat is not None else 0.0, self._detent_alone,
-            ecc is not None,
+            sat is not None, 1.0 / (sat * sat) if sat is not None else 0.0,
+            self._detent_alone.size > 0, ecc is not None,
             *((ecc.relative, ecc.phase_rad, ecc.unbalance_Nm, ecc.unbalance_phase_rad)
               if ecc is not None else (0.0, 0.0, 0.0, 0.0)),
         )
@@ -380,8 +378,6 @@ class Plant:
         self._amp_const = (amp.offset_a_mA * 1e-3, amp.offset_b_mA * 1e-3,
                            (1.0 + amp.gain_error_a) / GAIN_UNITY * 1e-3,
                            (1.0 + amp.gain_error_b) / GAIN_UNITY * 1e-3)
-        self._i_a = self._i_b = 0.0
-        self._target_a = self._target_b = 0.0
 
     def _setup_sensor(self, unit: UnitParams, seed: int) -> None:
         s = unit.sensor
@@ -405,7 +401,8 @@ class Plant:
         self._half_step = 0.5 * self._h
         self._yf0 = self._yf1 = 0.0
         self._minus_radius = -s.radius_m
-        self._u_substeps: list[float] = []
+        # Each step's input to the filter, kept for the sample instant of a drifting clock.
+        self._u_substeps = np.zeros(self._substeps)
         # The tangential filter is linear, so one SYNC period of it is
         # x_end = Aⁿ·x_start + Σ_k W_k·u_k: the loop accumulates two sums.
         a00, a01, a10, a11, b0, b1 = self._lp_sub
@@ -413,8 +410,8 @@ class Plant:
         drive = np.array([b0, b1])
         weights = [np.linalg.matrix_power(step, self._substeps - 1 - k) @ drive
                    for k in range(self._substeps)]
-        self._steps = tuple((k * self._h, float(w[0]), float(w[1]))
-                            for k, w in enumerate(weights))
+        self._steps = np.array([(k * self._h, float(w[0]), float(w[1]))
+                                for k, w in enumerate(weights)])
         whole = np.linalg.matrix_power(step, self._substeps)
         self._lp_period = (float(whole[0, 0]), float(whole[0, 1]), float(whole[1, 0]),
                            float(whole[1, 1]))
@@ -458,30 +455,30 @@ class Plant:
 
     @property
     def rotor_angle_rad(self) -> float:
-        return self._theta[0]
+        return float(self._state[k_.TH0])
 
     @property
     def rotor_velocity_rad_s(self) -> float:
-        return self._omega[0]
+        return float(self._state[k_.OM0])
 
     @property
     def load_angle_rad(self) -> float:
         """Angle of the inertia that carries the sensor (load side of any gearing)."""
-        return self._theta[-1]
+        return float(self._state[k_.THL])
 
     @property
     def load_velocity_rad_s(self) -> float:
-        return self._omega[-1]
+        return float(self._state[k_.OML])
 
     @property
     def phase_currents_A(self) -> tuple[float, float]:
         """Actual phase currents at the last integration step."""
-        return self._i_a, self._i_b
+        return float(self._state[k_.I_A]), float(self._state[k_.I_B])
 
     @property
     def motor_torque_Nm(self) -> float:
         """Electromagnetic torque at the last integration step."""
-        return self._last_torque
+        return float(self._state[k_.TORQUE])
 
     @property
     def sensor_reading_mps2(self) -> tuple[float, float, float]:
@@ -544,14 +541,17 @@ class Plant:
         thetas = [theta_u - rho / self._nr]
         for i, (k, _c, ratio) in enumerate(chain.springs):
             thetas.append(ratio * thetas[-1] - carried[i] / k)
-        self._theta = thetas
-        self._omega = omegas
+        state = self._state
+        state[k_.TH0], state[k_.OM0] = thetas[0], omegas[0]
+        state[k_.THL], state[k_.OML] = thetas[-1], omegas[-1]
+        if n == 3:
+            state[k_.TH1], state[k_.OM1] = thetas[1], omegas[1]
         if command.enabled:
             i_a, i_b = commanded_currents_A(x_u, command.amplitude_mA, trims, amp)
-            self._i_a = self._target_a = float(i_a)
-            self._i_b = self._target_b = float(i_b)
+            state[k_.I_A] = state[k_.T_A] = float(i_a)
+            state[k_.I_B] = state[k_.T_B] = float(i_b)
         else:
-            self._i_a = self._i_b = self._target_a = self._target_b = 0.0
+            state[k_.I_A] = state[k_.I_B] = state[k_.T_A] = state[k_.T_B] = 0.0
         self._xf0 = self._xf1 = 0.0
         self._yf0, self._yf1 = -self._radius * omegas[-1] ** 2, 0.0
 
@@ -582,7 +582,7 @@ class Plant:
         # Radial acceleration changes slowly; filtering it at the SYNC rate is enough.
         a00, a01, a10, a11, b0, b1 = self._lp_sync
         y0, y1 = y_start, self._yf1
-        u = self._minus_radius * self._omega[-1] ** 2
+        u = self._minus_radius * float(self._state[k_.OML]) ** 2
         self._yf0 = a00 * y0 + a01 * y1 + b0 * u
         self._yf1 = a10 * y0 + a11 * y1 + b1 * u
         if not self._drifting:
@@ -599,7 +599,7 @@ class Plant:
         a00, a01, a10, a11, b0, b1 = self._lp_sub
         x0, x1 = x_start
         xs = [x0 + self._half_step * x1]
-        for u in self._u_substeps:
+        for u in self._u_substeps.tolist():
             x0, x1 = a00 * x0 + a01 * x1 + b0 * u, a10 * x0 + a11 * x1 + b1 * u
             xs.append(x0 + self._half_step * x1)
         q = into / self._h
@@ -664,199 +664,68 @@ class Plant:
             full if cz > full else -full if cz < -full else cz,
         )
 
-    def _loop_constants(self) -> tuple[Any, ...]:
-        """Everything the hot loop reads, in one tuple: one unpack instead of dozens of lookups."""
+    def _loop_constants(self) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """What the compiled loop reads of the unit: its constants and its switches."""
         chain = self._chain
         ndof = len(chain.inertias)
         f0, fl = chain.frictions[0], chain.frictions[-1]
         k1, c1, n1 = chain.springs[0] if ndof > 1 else (0.0, 0.0, 0.0)
         k2, c2, n2 = chain.springs[1] if ndof > 2 else (0.0, 0.0, 0.0)
-        return (
-            self._h, self._nr, self._kt, self._harmonics, self._reluctance,
-            self._distortion, self._lagged, *self._lag_a, *self._lag_b,
-            ndof, f0.viscous, f0.coulomb_pos, f0.coulomb_neg, 1.0 / f0.smoothing,
+        reshaping = self._reshaping
+        saturating, inv_isat2, detent_alone, eccentric, *eccentricity = (
+            reshaping if reshaping is not None else (False, 0.0, False, False, 0.0, 0.0, 0.0, 0.0))
+        constants = np.array([
+            self._h, self._nr, self._kt, self._reluctance, *self._lag_a, *self._lag_b,
+            f0.viscous, f0.coulomb_pos, f0.coulomb_neg, 1.0 / f0.smoothing,
             fl.viscous, fl.coulomb_pos, fl.coulomb_neg, 1.0 / fl.smoothing,
-            fl.coulomb_pos > 0.0 or fl.coulomb_neg > 0.0,
             chain.inertias[0], chain.inertias[1] if ndof == 3 else 1.0, chain.inertias[-1],
-            k1, c1, n1, k2, c2, n2, self._radius / self._h, self._steps, *self._lp_period,
-            self._drifting, self._reluctance != 0.0 or self._reshaping is not None,
-            self._reshaping,
-        )
+            k1, c1, n1, k2, c2, n2, self._radius / self._h, inv_isat2, *eccentricity,
+        ], dtype=np.float64)
+        switches = np.zeros(k_.N_SWITCHES, dtype=np.int64)
+        switches[k_.NDOF] = ndof
+        switches[k_.HARMONICS] = self._harmonics.shape[0] > 0
+        switches[k_.DISTORTION] = self._distortion.shape[0] > 0
+        switches[k_.LAGGED] = self._lagged
+        switches[k_.COULOMB_L] = fl.coulomb_pos > 0.0 or fl.coulomb_neg > 0.0
+        switches[k_.BEYOND] = self._reluctance != 0.0 or reshaping is not None
+        switches[k_.RESHAPING] = reshaping is not None
+        switches[k_.SATURATING] = saturating
+        switches[k_.DETENT_ALONE] = detent_alone
+        switches[k_.ECCENTRIC] = eccentric
+        switches[k_.DRIFTING] = self._drifting
+        if constants.size != k_.N_CONSTANTS:
+            raise AssertionError("the plant's constants do not match the kernel's layout")
+        return constants, switches
 
     def _integrate(self, command: DriveCommand) -> None:
-        """The hot loop: one SYNC period in ``substeps`` semi-implicit Euler steps.
-
-        Velocities are updated first from the forces at the current angles,
-        then angles from the new velocities (symplectic Euler, so the lightly
-        damped modes neither gain nor lose energy numerically). Friction is
-        linearised implicitly: the tanh's steep slope near zero speed would
-        otherwise make an explicit step unstable.
-        """
-        sin, cos, tanh, sqrt = math.sin, math.cos, math.tanh, math.sqrt
-        floor = math.floor
-        tsize = TABLE_SIZE
-        tscale = TABLE_SIZE / (2.0 * math.pi)
-        (h, nr, kt, harmonics, rel, distortion, lagged, la0, la1, la2, lb0, lb1, lb2,
-         ndof, cv0, cp0, cn0, iw0, cvl, cpl, cnl, iwl, coulomb_l, j0, j1, jl,
-         k1, c1, n1, k2, c2, n2, r_over_h, steps, p00, p01, p10, p11, drifting,
-         beyond, reshaping) = self._const
-        if reshaping is not None:
-            (saturating, inv_isat2, cg_tab, eccentric, ecc, ecc_phase, unb,
-             unb_phase) = reshaping
-        enabled = command.enabled
-        kx = 2.0 * math.pi / (4.0 * command.microsteps_per_fullstep)
+        """One SYNC period of the compiled loop (``kernel.integrate``), then the sensor
+        filter's state at its end from the two sums the loop accumulated."""
+        trims = command.trims
+        amp_off_a, amp_off_b, amp_gain_a, amp_gain_b = self._amp_const
         # The drive commands its currents from its integer position demand (the
         # microstep staircase, ICD.md §2). The staircase's steps come at the
         # microstep rate (20 kHz at 20 Hz electrical), far above the mechanics
         # and the sensor; sampled at the substep rate they would alias onto low
         # harmonics, which is not physics. So the currents follow the staircase's
         # mean: the ramp p(t) = p0 + (pv + pa·t)·t, half a microstep behind.
-        p0 = command.position_start - STAIRCASE_LAG_MICROSTEPS
-        pv = command.velocity
-        pa = 0.5 * command.acceleration
-        trims = command.trims
-        amp_off_a, amp_off_b, amp_gain_a, amp_gain_b = self._amp_const
-        off_a = trims.offset_a_mA * 1e-3 + amp_off_a
-        off_b = trims.offset_b_mA * 1e-3 + amp_off_b
-        fa = amp_gain_a * trims.gain_a * command.amplitude_mA
-        fb = amp_gain_b * trims.gain_b * command.amplitude_mA
-        if not enabled:
-            distortion = None
-            lagged = False
-        fa_tab, fb_tab, fd_tab = harmonics if harmonics else ((), (), ())
-        da_tab, db_tab = distortion if distortion else ((), ())
-        if enabled:
-            i_a, i_b, t_a, t_b = self._i_a, self._i_b, self._target_a, self._target_b
-        else:
-            i_a = i_b = t_a = t_b = 0.0
-        th = self._theta
-        om = self._omega
-        th0, om0, thl, oml = th[0], om[0], th[-1], om[-1]
-        th1 = th[1] if ndof == 3 else 0.0
-        om1 = om[1] if ndof == 3 else 0.0
-        acc0 = acc1 = 0.0
-        ubuf: list[float] = []
-        tau = tau_em = 0.0
-        for t, w0, w1 in steps:
-            # Drive: phase currents from the position demand at this instant.
-            if enabled:
-                x = kx * (p0 + (pv + pa * t) * t)
-                cx = cos(x)
-                sx = sin(x)
-                ua = off_a + fa * cx
-                ub = off_b + fb * sx
-                if distortion:
-                    q = x * tscale
-                    kf = floor(q)
-                    fr = q - kf
-                    kt_ = kf % tsize
-                    g = da_tab[kt_]
-                    ua += fa * (g + (da_tab[kt_ + 1] - g) * fr)
-                    g = db_tab[kt_]
-                    ub += fb * (g + (db_tab[kt_ + 1] - g) * fr)
-                if lagged:
-                    i_a = la0 * i_a + la1 * t_a + la2 * ua
-                    i_b = lb0 * i_b + lb1 * t_b + lb2 * ub
-                    t_a = ua
-                    t_b = ub
-                else:
-                    i_a = ua
-                    i_b = ub
-            # Motor: eq. (1) for the fundamental, then whatever the unit adds.
-            te = nr * th0
-            s1 = sin(te)
-            co1 = cos(te)
-            tau = kt * (i_b * co1 - i_a * s1)
-            if harmonics:
-                q = te * tscale
-                kf = floor(q)
-                fr = q - kf
-                kt_ = kf % tsize
-                g = fa_tab[kt_]
-                tau += i_a * (g + (fa_tab[kt_ + 1] - g) * fr)
-                g = fb_tab[kt_]
-                tau += i_b * (g + (fb_tab[kt_ + 1] - g) * fr)
-                g = fd_tab[kt_]
-                tau += g + (fd_tab[kt_ + 1] - g) * fr
-            if beyond:
-                if reshaping is None:
-                    tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
-                                  - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
-                else:
-                    # τ is the magnet's so far (detent has its own table here):
-                    # m(θ)·(g(|i|)·τ_pm + τ_cg + τ_vr), then the unbalance's load
-                    # (motor.py). ``tau`` drives the rotor, ``tau_em`` is reported.
-                    if saturating:
-                        tau /= sqrt(1.0 + (i_a * i_a + i_b * i_b) * inv_isat2)
-                    if cg_tab:
-                        q = te * tscale
-                        kf = floor(q)
-                        fr = q - kf
-                        kt_ = kf % tsize
-                        g = cg_tab[kt_]
-                        tau += g + (cg_tab[kt_ + 1] - g) * fr
-                    if rel:
-                        tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
-                                      - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
-                    if eccentric:
-                        tau *= 1.0 + ecc * cos(th0 + ecc_phase)
-                        tau_em = tau
-                        tau -= unb * sin(th0 + unb_phase)
-                    else:
-                        tau_em = tau
-            # Mechanics: friction implicit (linearised), springs explicit.
-            tf = tanh(om0 * iw0)
-            cc = cp0 if om0 >= 0.0 else cn0
-            f0 = cv0 * om0 + cc * tf
-            df0 = cv0 + cc * iw0 * (1.0 - tf * tf)
-            if ndof == 1:
-                new0 = om0 + h * (tau - f0) / (j0 + h * df0)
-                u = (new0 - om0) * r_over_h
-                om0 = new0
-                th0 += h * new0
-            else:
-                if coulomb_l:
-                    tl = tanh(oml * iwl)
-                    ccl = cpl if oml >= 0.0 else cnl
-                    fl = cvl * oml + ccl * tl
-                    dfl = cvl + ccl * iwl * (1.0 - tl * tl)
-                else:
-                    fl = cvl * oml
-                    dfl = cvl
-                if ndof == 2:
-                    ts = k1 * (n1 * th0 - thl) + c1 * (n1 * om0 - oml)
-                    new0 = om0 + h * (tau - n1 * ts - f0) / (j0 + h * df0)
-                    newl = oml + h * (ts - fl) / (jl + h * dfl)
-                else:
-                    ts = k1 * (n1 * th0 - th1) + c1 * (n1 * om0 - om1)
-                    ts2 = k2 * (n2 * th1 - thl) + c2 * (n2 * om1 - oml)
-                    new0 = om0 + h * (tau - n1 * ts - f0) / (j0 + h * df0)
-                    om1 += h * (ts - n2 * ts2) / j1
-                    th1 += h * om1
-                    newl = oml + h * (ts2 - fl) / (jl + h * dfl)
-                u = (newl - oml) * r_over_h
-                om0 = new0
-                th0 += h * new0
-                oml = newl
-                thl += h * newl
-            # Sensor front end: its analog low-pass sees r·α continuously.
-            acc0 += w0 * u
-            acc1 += w1 * u
-            if drifting:
-                ubuf.append(u)
-        if ndof == 1:
-            self._theta = [th0]
-            self._omega = [om0]
-        elif ndof == 2:
-            self._theta = [th0, thl]
-            self._omega = [om0, oml]
-        else:
-            self._theta = [th0, th1, thl]
-            self._omega = [om0, om1, oml]
+        # One slice assignment in ``kernel``'s order (ENABLED … FB).
+        cmd = self._command
+        cmd[:] = (
+            1.0 if command.enabled else 0.0,
+            2.0 * math.pi / (4.0 * command.microsteps_per_fullstep),
+            command.position_start - STAIRCASE_LAG_MICROSTEPS,
+            command.velocity,
+            0.5 * command.acceleration,
+            trims.offset_a_mA * 1e-3 + amp_off_a,
+            trims.offset_b_mA * 1e-3 + amp_off_b,
+            amp_gain_a * trims.gain_a * command.amplitude_mA,
+            amp_gain_b * trims.gain_b * command.amplitude_mA,
+        )
+        state = self._state
+        k_.integrate(self._constants, self._switches, cmd, state, self._harmonics,
+                     self._distortion, self._detent_alone, self._steps, self._u_substeps)
+        p00, p01, p10, p11 = self._lp_period
         xs0, xs1 = self._xf0, self._xf1
+        acc0, acc1 = state[k_.ACC0:k_.ACC1 + 1].tolist()
         self._xf0 = p00 * xs0 + p01 * xs1 + acc0
         self._xf1 = p10 * xs0 + p11 * xs1 + acc1
-        self._u_substeps = ubuf
-        self._i_a, self._i_b = i_a, i_b
-        self._target_a, self._target_b = (t_a, t_b) if lagged else (i_a, i_b)
-        self._last_torque = tau if reshaping is None else tau_em

@@ -3,7 +3,7 @@
 ``station sim record`` makes a recording the way a real bench does (devices on
 python-can's virtual bus, the station's drivers and SYNC clock, a logger), and
 pays for it: a 50 s characterization takes ~12 s of threads, SDO round trips
-and canopen dispatch, while the plant alone runs ~40x real time. A diagnosis
+and canopen dispatch, while the plant alone runs ~35x real time. A diagnosis
 benchmark needs hundreds of recordings, so this module replays, SYNC by SYNC,
 what the simulated bench does when ``run_schedule`` drives it, and produces
 the frames the bus would have carried, or the timeline a reader would rebuild
