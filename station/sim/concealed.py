@@ -320,7 +320,8 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
     Every fit is made as the diagnosis first makes it (``nominal_of``, then ``fit_spec``):
     its own ``fit.before`` may come from a nominal judged again with weights its chosen
     model set, which a twin has no counterpart for. A twin's χ² per value is scaled to the
-    trial's count of values, since the two may keep different holds.
+    trial's count of values, since the two may keep different holds. A twin the diagnosis
+    refuses (it clipped) gives no measure: −∞, which ``weakest_part`` treats as a failed fit.
     """
     from station.diagnosis.diagnose import nominal_of  # noqa: PLC0415
 
@@ -337,8 +338,15 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
         run = simulate_timeline(twin, plan.schedule, seed=plan.case.seed, loss=plan.loss,
                                 substeps=PLANT_SUBSTEPS,
                                 extra_metadata={"schedule": "characterization"})
+        try:
+            theirs = nominal_of(run)[1]
+        except StationError:
+            # The twin shakes harder than the unit (a damping effect taken away) and clips
+            # at the range chosen for the unit: no measure, like a failed fit.
+            parts.append(-math.inf)
+            continue
         mine = _held_out_with(own, effects)
-        other = _held_out_with(nominal_of(run)[1], effects)
+        other = _held_out_with(theirs, effects)
         parts.append(mine.total - other.total / max(other.residuals.size, 1)
                      * mine.residuals.size)
     return weakest_part(parts)

@@ -21,15 +21,22 @@ what must hold on every trial is held on every trial.
 from __future__ import annotations
 
 import json
+import math
 import os
 import statistics
 import zlib
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 
+import numpy as np
 import pytest
 
-from station.core import Effect
+import station.diagnosis.diagnose as diagnose_module
+import station.sim.concealed as concealed_module
+from station.core import Effect, LoadKind, Trims
+from station.diagnosis.fit import HeldOut
+from station.diagnosis.observations import NotDiagnosable
+from station.schedules import random_characterization
 from station.sim.concealed import (
     CLASSES,
     PLANT_SUBSTEPS,
@@ -39,6 +46,7 @@ from station.sim.concealed import (
     Case,
     Trial,
     TrialClass,
+    TrialPlan,
     cases,
     confusion,
     fresh_seeds,
@@ -49,6 +57,7 @@ from station.sim.concealed import (
 )
 from station.sim.concealed import run_trial as run
 from station.sim.inprocess import simulate_timeline
+from station.sim.population import draw_unit
 
 SMOKE_SCORE = 0.5
 """Mean score over one trial per class below which the diagnosis has surely regressed.
@@ -143,6 +152,47 @@ def test_a_pair_of_strong_effects_is_measured_with_the_other_one_fitted() -> Non
     recorded = simulate_timeline(plan.unit, plan.schedule, seed=11, loss=plan.loss,
                                  substeps=PLANT_SUBSTEPS)
     assert twin_excess(plan, recorded) > 20 * VISIBLE_EXCESS
+
+
+@pytest.mark.parametrize(("effects", "refused", "excess"), [
+    # The only twin clipped: no measure, and the miss is not excused.
+    ({Effect.DETENT_TORQUE}, {0}, -math.inf),
+    # Beside a twin that was measured, that one's part.
+    ({Effect.DETENT_TORQUE, Effect.FRICTION}, {0}, 123.0),
+    ({Effect.DETENT_TORQUE, Effect.FRICTION}, set(), 123.0),
+])
+def test_a_twin_the_diagnosis_refuses_gives_no_measure_rather_than_ending_the_benchmark(
+        monkeypatch: pytest.MonkeyPatch, effects: set[Effect], refused: set[int],
+        excess: float) -> None:
+    """Bench, session 15: a twin without one effect shook harder than the unit and clipped
+    at the unit's range; its refusal ended a 46-minute run. The fits are stood in for:
+    what is tested is what a refusal counts as."""
+    case = Case(TrialClass(frozenset(effects)), TRIAL_SEED_FLOOR)
+    unit = draw_unit(case.seed, load=LoadKind.DISK, effects=case.cls.effects)
+    schedule = random_characterization(np.random.default_rng(0), center=Trims())
+    plan = TrialPlan(case, unit, schedule, 0.0, Trims())
+    recorded = object()
+    twins: list[object] = []
+
+    def simulated(*_args: object, **_kwargs: object) -> object:
+        twins.append(object())
+        return twins[-1]
+
+    def nominal_of(timeline: object) -> tuple[None, object]:
+        if timeline is not recorded and twins.index(timeline) in refused:
+            raise NotDiagnosable("41 settled segment(s) clipped at the sensor's full scale")
+        return None, timeline
+
+    def held_out_with(nominal: object, _effects: frozenset[Effect]) -> HeldOut:
+        total = 1123.0 if nominal is recorded else 1000.0
+        return HeldOut(np.array([total]), np.zeros(10))
+
+    monkeypatch.setattr(concealed_module, "simulate_timeline", simulated)
+    monkeypatch.setattr(diagnose_module, "nominal_of", nominal_of)
+    monkeypatch.setattr(concealed_module, "_held_out_with", held_out_with)
+    measured = twin_excess(plan, recorded)  # type: ignore[arg-type]
+    assert len(twins) == len(effects)
+    assert measured == excess
 
 
 @pytest.mark.parametrize(("excess", "detectable"), [
