@@ -300,8 +300,6 @@ class Plant:
         self._nr = float(motor.rotor_teeth)
         self._kt = motor.kt_Nm_per_A
         self._chain = build_chain(unit)
-        n = len(self._chain.inertias)
-        self._ndof = n
         # Angles, speeds and currents carried between periods, and what a period reports.
         self._state = np.zeros(k_.N_STATE)
         self._command = np.zeros(k_.N_COMMAND)
