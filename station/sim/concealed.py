@@ -207,8 +207,8 @@ def _friction_within_reach(unit: UnitParams, schedule: Schedule) -> UnitParams:
     return replace(unit, mechanics=replace(unit.mechanics, load_friction=scaled))
 
 
-def _steady_peak(timeline: Timeline, schedule: Schedule) -> float:
-    """The largest steady acceleration peak of any moving hold (m/s²).
+def _steady_peaks(timeline: Timeline, schedule: Schedule) -> list[float]:
+    """Each hold's steady acceleration peak (m/s²; 0 for a hold at standstill).
 
     Peaks are taken over the second half of each hold (the transients of a speed change
     may clip; a steady condition must not), so a fast condition that is a small part of
@@ -217,16 +217,38 @@ def _steady_peak(timeline: Timeline, schedule: Schedule) -> float:
     meta = timeline.metadata
     counts = np.abs(timeline.accel_counts[:, meta.tangential_axis.column].astype(np.float64))
     valid = timeline.sensor_valid & (timeline.amplitude_mA > 0)
-    peak = 0.0
+    peaks = []
     start = 0
     for hold in schedule.holds:
         stop = min(start + hold.cycles, counts.size)
         half = slice(start + (stop - start) // 2, stop)
         steady = counts[half][valid[half]]
-        if hold.velocity and steady.size:
-            peak = max(peak, float(np.quantile(steady, 0.999)) * meta.sensor_lsb_mps2)
+        peaks.append(float(np.quantile(steady, 0.999)) * meta.sensor_lsb_mps2
+                     if hold.velocity and steady.size else 0.0)
         start = stop
-    return peak
+    return peaks
+
+
+def _runnable(schedule: Schedule, peaks: list[float]) -> tuple[Schedule, float]:
+    """``schedule`` without the speeds at which the unit fell out of step, and the largest
+    steady peak of what is left.
+
+    A speed whose steady motion fills even the widest range (a disk with strong flux
+    harmonics that stalls above 20 Hz electrical, at every current) is one no engineer
+    would characterize at; its refusal measured the draw, not the diagnosis. At least
+    two speeds are kept: with fewer the schedule stays as drawn, and the diagnosis says
+    what it could not use.
+    """
+    ceiling = RANGE_MARGIN * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
+    stalled = {abs(h.velocity) for h, peak in zip(schedule.holds, peaks, strict=True)
+               if peak >= ceiling}
+    speeds = {abs(h.velocity) for h in schedule.holds if h.velocity}
+    if not stalled or len(speeds - stalled) < 2:
+        return schedule, max(peaks, default=0.0)
+    kept = [(h, peak) for h, peak in zip(schedule.holds, peaks, strict=True)
+            if abs(h.velocity) not in stalled]
+    return (replace(schedule, holds=tuple(h for h, _ in kept)),
+            max((peak for _, peak in kept), default=0.0))
 
 
 def _range_for(peak_mps2: float) -> int:
@@ -250,8 +272,8 @@ def plan_trial(case: Case) -> TrialPlan:
     # then say what it could not use, as it would on the line.
     probe = replace(schedule, sensor_range_g=max(SENSOR_RANGES_G))
     run = simulate_timeline(unit, probe, seed=case.seed)
-    schedule = replace(schedule, name="characterization",
-                       sensor_range_g=_range_for(_steady_peak(run, probe)))
+    schedule, peak = _runnable(schedule, _steady_peaks(run, probe))
+    schedule = replace(schedule, name="characterization", sensor_range_g=_range_for(peak))
     loss = float(rng.uniform(0.0, 0.01))
     return TrialPlan(case, unit, schedule, loss, center)
 

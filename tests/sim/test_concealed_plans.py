@@ -4,19 +4,26 @@ run its schedule."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
+import numpy as np
 import pytest
 
-from station.core import Effect
+from station.core import STANDARD_GRAVITY, Effect
+from station.diagnosis.diagnose import nominal_of
 from station.physics.params import UnitParams
 from station.physics.plant import modal_analysis
+from station.schedules import RANDOM_CHARACTERIZATION, random_characterization
 from station.sim.concealed import (
     FRICTION_HEADROOM,
+    RANGE_MARGIN,
     Case,
     TrialClass,
+    _runnable,
     nominal_equivalent,
     plan_trial,
 )
+from station.sim.inprocess import simulate_timeline
 from station.sim.population import draw_unit
 
 
@@ -67,3 +74,34 @@ def test_a_disk_units_twin_without_its_coupling_is_the_rigid_disk() -> None:
     assert unit.mechanics.disk is not None and unit.mechanics.coupling is not None
     bare = draw_unit(21, load=unit.load, effects=frozenset())
     assert nominal_equivalent(bare, unit) is bare
+
+
+def test_the_speeds_a_unit_falls_out_of_step_at_are_left_out_of_its_characterization() -> None:
+    """Bench, session 15 (flux_harmonics@1173083428, a disk): above 20 Hz electrical the
+    unit stalled at every current, its steady motion filled the widest range, and the
+    diagnosis refused the recording. Left out, the two slow speeds make a recording the
+    diagnosis takes."""
+    plan = plan_trial(Case(TrialClass(frozenset({Effect.FLUX_HARMONICS})), 1173083428))
+    speeds = {abs(h.velocity) for h in plan.schedule.holds if h.velocity}
+    assert speeds == {8192, 9216}
+    assert plan.schedule.sensor_range_g < 16
+    run = simulate_timeline(plan.unit, plan.schedule, seed=plan.case.seed, loss=plan.loss)
+    assert nominal_of(run)[1].balanced.chi2 > 0  # not refused
+
+
+@pytest.mark.parametrize(("stalled", "kept"), [
+    (set(), 3),  # nothing stalled: as drawn
+    ({0}, 2),  # one speed stalled: the two others
+    ({0, 1}, 3),  # one speed would be left: as drawn, for the diagnosis to say
+])
+def test_a_stalled_speed_is_dropped_only_while_two_speeds_remain(
+        stalled: set[int], kept: int) -> None:
+    three = replace(RANDOM_CHARACTERIZATION, speeds=(3, 3))
+    schedule = random_characterization(np.random.default_rng(3), ranges=three)
+    speeds = sorted({abs(h.velocity) for h in schedule.holds if h.velocity})
+    full = RANGE_MARGIN * 16 * STANDARD_GRAVITY
+    peaks = [full if h.velocity and speeds.index(abs(h.velocity)) in stalled
+             else (1.0 if h.velocity else 0.0) for h in schedule.holds]
+    out, peak = _runnable(schedule, peaks)
+    assert len({abs(h.velocity) for h in out.holds if h.velocity}) == kept
+    assert peak == (1.0 if kept == 2 else max(peaks))
