@@ -66,6 +66,10 @@ FRICTION_HEADROOM: Final = 0.5
 holding torque at every moving hold's current: beyond it the motor would stall, which is
 a failed run, not a diagnosis."""
 
+STALLED_SHARE: Final = 0.999
+"""A hold whose steady peak reaches this share of the widest range's full scale clipped
+there (``_runnable``)."""
+
 RANGE_MARGIN: Final = 0.8
 """The sensor range is the smallest whose full scale the run's peaks stay under by this
 factor: the range a careful engineer would set after a first look."""
@@ -233,16 +237,19 @@ def _runnable(schedule: Schedule, peaks: list[float]) -> tuple[Schedule, float]:
     """``schedule`` without the speeds at which the unit fell out of step, and the largest
     steady peak of what is left.
 
-    A speed whose steady motion fills even the widest range (a disk with strong flux
-    harmonics that stalls above 20 Hz electrical, at every current) is one no engineer
-    would characterize at; its refusal measured the draw, not the diagnosis. At least
-    two speeds are kept: with fewer the schedule stays as drawn, and the diagnosis says
-    what it could not use.
+    A speed at which every hold, at every current, clips even the widest range (a disk
+    with strong flux harmonics that stalled above 20 Hz electrical) is one no engineer
+    would characterize at; its refusal measured the draw, not the diagnosis. A speed
+    where only some holds clip or come near full scale (a rotor swinging on its own mode
+    near one current) is physics the diagnosis must handle, and stays. At least two
+    speeds are kept: with fewer the schedule stays as drawn, and the diagnosis says what
+    it could not use.
     """
-    ceiling = RANGE_MARGIN * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
-    stalled = {abs(h.velocity) for h, peak in zip(schedule.holds, peaks, strict=True)
-               if peak >= ceiling}
+    clipped = STALLED_SHARE * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
     speeds = {abs(h.velocity) for h in schedule.holds if h.velocity}
+    stalled = {v for v in speeds
+               if all(peak >= clipped for h, peak in zip(schedule.holds, peaks, strict=True)
+                      if abs(h.velocity) == v)}
     if not stalled or len(speeds - stalled) < 2:
         return schedule, max(peaks, default=0.0)
     kept = [(h, peak) for h, peak in zip(schedule.holds, peaks, strict=True)

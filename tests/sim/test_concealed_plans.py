@@ -16,7 +16,6 @@ from station.physics.plant import modal_analysis
 from station.schedules import RANDOM_CHARACTERIZATION, random_characterization
 from station.sim.concealed import (
     FRICTION_HEADROOM,
-    RANGE_MARGIN,
     Case,
     TrialClass,
     _runnable,
@@ -91,6 +90,7 @@ def test_the_speeds_a_unit_falls_out_of_step_at_are_left_out_of_its_characteriza
 
 @pytest.mark.parametrize(("stalled", "kept"), [
     (set(), 3),  # nothing stalled: as drawn
+    ({3}, 3),  # one hold clipped at a speed, the others not: a swing, not a stall
     ({0}, 2),  # one speed stalled: the two others
     ({0, 1}, 3),  # one speed would be left: as drawn, for the diagnosis to say
 ])
@@ -99,9 +99,12 @@ def test_a_stalled_speed_is_dropped_only_while_two_speeds_remain(
     three = replace(RANDOM_CHARACTERIZATION, speeds=(3, 3))
     schedule = random_characterization(np.random.default_rng(3), ranges=three)
     speeds = sorted({abs(h.velocity) for h in schedule.holds if h.velocity})
-    full = RANGE_MARGIN * 16 * STANDARD_GRAVITY
+    full = 16 * STANDARD_GRAVITY
     peaks = [full if h.velocity and speeds.index(abs(h.velocity)) in stalled
              else (1.0 if h.velocity else 0.0) for h in schedule.holds]
+    if stalled == {3}:  # not a speed: one hold of the first speed clips
+        peaks[next(i for i, h in enumerate(schedule.holds) if h.velocity)] = full
     out, peak = _runnable(schedule, peaks)
     assert len({abs(h.velocity) for h in out.holds if h.velocity}) == kept
     assert peak == (1.0 if kept == 2 else max(peaks))
+    assert max(peaks) == (1.0 if not stalled else full)
