@@ -14,7 +14,8 @@ nominal fit's held-out χ² over a twin of the unit without it (same schedule,
 same noise; for a combination, each effect over the twin without that one, both
 fitted with the other effect's group; a belt's coupling leaves its compliance in the
 twin's belt: ``station.sim.concealed.twin_excess``, ``nominal_equivalent``;
-an excess below −50 is a failed fit, not invisible physics, and counts as a miss).
+an excess below −50 is a failed fit, not invisible physics, and counts as a miss; so
+does a twin the diagnosis refuses).
 The trials within ±50 are counted apart and must not be given a wrong id; the
 share over every trial is reported too.
 
