@@ -13,6 +13,13 @@ The arguments are flat arrays rather than dozens of scalars: a compiled
 call checks the type of every argument, and a SYNC period is short enough
 that this check would otherwise cost as much as the integration.
 Indices into them are named below; ``Plant`` fills them.
+
+The loop keeps the GIL. A SYNC period is about 10 µs of work: released, the
+simulated device's thread would have to win the GIL back after every period,
+and behind a busy station thread that waits up to the interpreter's 5 ms
+switch interval, which would stall the bench's devices. (A loaded CI run with
+the GIL released saw a simulated Modbus drive's keep-alive go unanswered for
+5 s; this is the likeliest cause, not a proven one.)
 """
 
 from __future__ import annotations
@@ -51,7 +58,7 @@ ACC0, ACC1, TORQUE = 10, 11, 12
 N_STATE = 13
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def _table(table: NDArray[np.float64], angle: float, scale: float, size: int) -> float:
     """A periodic table read at ``angle`` with linear interpolation."""
     q = angle * scale
@@ -62,7 +69,7 @@ def _table(table: NDArray[np.float64], angle: float, scale: float, size: int) ->
     return float(g + (table[k + 1] - g) * fr)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True)
 def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
     c: NDArray[np.float64], sw: NDArray[np.int64], cmd: NDArray[np.float64],
     state: NDArray[np.float64], harmonics: NDArray[np.float64],

@@ -308,6 +308,12 @@ class Plant:
         self._setup_amplifier(unit.amplifier)
         self._setup_sensor(unit, seed)
         self._constants, self._switches = self._loop_constants()
+        # Compiled (or loaded from numba's cache) here, with no step to take, rather than
+        # at the first SYNC: that takes seconds with the GIL held, and a bench's device
+        # threads and the station's watchdogs are running by then.
+        k_.integrate(self._constants, self._switches, self._command.copy(), self._state.copy(),
+                     self._harmonics, self._distortion, self._detent_alone, self._steps[:0],
+                     self._u_substeps)
 
     # ----------------------------------------------------------------- set-up
     def _setup_torque(self, motor: MotorParams) -> None:
