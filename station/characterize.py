@@ -9,6 +9,7 @@ anywhere is the same second half. The maths lives in ``station.diagnosis``.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -32,6 +33,22 @@ log = logging.getLogger(__name__)
 
 REPORT_SUFFIX = ".diagnosis.html"
 
+WORKERS_ENV = "STATION_DIAGNOSIS_WORKERS"
+"""How many processes fit a diagnosis's models side by side (default: the CPUs this
+process may run on, at most ``MOST_WORKERS``); 1 fits them all in this process."""
+MOST_WORKERS = 4
+"""A step of the search has about ten models to fit: more workers mostly wait."""
+
+
+def diagnosis_workers() -> int:
+    raw = os.environ.get(WORKERS_ENV)
+    if raw:
+        try:
+            return max(1, int(raw))
+        except ValueError:
+            raise InputError(f"{WORKERS_ENV}={raw!r} is not a number of processes") from None
+    return max(1, min(MOST_WORKERS, len(os.sched_getaffinity(0))))
+
 
 @dataclass(frozen=True)
 class DiagnosisResult:
@@ -53,10 +70,12 @@ def report_path_for(recording: Path) -> Path:
 
 
 def diagnose_recording(recording: Path, *, report: Path | None = None, write_report: bool = True,
-                       progress: Callable[[str], None] | None = None) -> DiagnosisResult:
-    """Diagnose one recording; the HTML report goes beside it unless told otherwise."""
+                       progress: Callable[[str], None] | None = None,
+                       workers: int | None = None) -> DiagnosisResult:
+    """Diagnose one recording; the HTML report goes beside it unless told otherwise.
+    ``workers``: processes fitting side by side (default ``diagnosis_workers()``)."""
     timeline = read_recording(recording)
-    result = diagnose(timeline, progress)
+    result = diagnose(timeline, progress, diagnosis_workers() if workers is None else workers)
     target: Path | None = None
     if write_report:
         # Imported here: matplotlib costs a second of start-up that --no-report saves.

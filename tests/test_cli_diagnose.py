@@ -122,6 +122,29 @@ def test_diagnose_without_report_writes_nothing_beside_the_recording(
     assert set(recording.parent.iterdir()) == before
 
 
+def test_diagnose_fitting_in_worker_processes_gives_exactly_the_one_process_diagnosis(
+    characterized: Characterized, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    recording = characterized.doc["recording"]
+    docs = []
+    for workers in ("1", "2"):
+        monkeypatch.setenv("STATION_DIAGNOSIS_WORKERS", workers)
+        assert _run(["diagnose", recording, "--json", "--no-report"]) == 0
+        docs.append(json.loads(capsys.readouterr().out))
+    assert docs[0] == docs[1]
+    assert docs[0]["fit"]["after_chi2"] > 0
+
+
+def test_a_number_of_diagnosis_workers_that_is_no_number_is_an_input_error(
+    characterized: Characterized, capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setenv("STATION_DIAGNOSIS_WORKERS", "two")
+    assert _run(["diagnose", characterized.doc["recording"], "--json", "--no-report"]) == 2
+    assert "STATION_DIAGNOSIS_WORKERS='two'" in capsys.readouterr().err
+
+
 def test_diagnose_of_a_missing_recording_is_an_input_error(tmp_path: Path) -> None:
     assert _run(["diagnose", str(tmp_path / "absent.blf"), "--json"]) == 2
 

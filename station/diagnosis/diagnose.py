@@ -41,9 +41,12 @@ carry over to recordings from other benches and simulators.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import math
-from collections.abc import Callable, Iterable
+import multiprocessing
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
@@ -62,6 +65,7 @@ from station.diagnosis.fit import (
     TOURNAMENT_NFEV,
     Fit,
     HeldOut,
+    Mapper,
     ParameterJudgement,
     ParameterState,
     best_of,
@@ -520,7 +524,8 @@ class Nominal:
     free: Fit
 
 
-def fit_nominal(obs: Observations, *, previous: Nominal | None = None) -> Nominal:
+def fit_nominal(obs: Observations, *, previous: Nominal | None = None,
+                run: Mapper = map) -> Nominal:
     """The nominal model from the best few grid points (module note), first with free load
     angles, then with the model floor magnified where that chain has its modes, then with
     the torque balance; that weighting is the one every model of this recording is then
@@ -530,27 +535,33 @@ def fit_nominal(obs: Observations, *, previous: Nominal | None = None) -> Nomina
     starts = nominal_starts(model)
     if previous is not None:
         starts.append(_transplant(model, previous.free))
-    ranked = screen(model, starts, exact=GRID_EXACT)
-    split = screen(model, starts, split=True, exact=GRID_EXACT)
+    ranked = screen(model, starts, exact=GRID_EXACT, run=run)
+    split = screen(model, starts, split=True, exact=GRID_EXACT, run=run)
     chosen = [x for _, x in ranked[:NOMINAL_KEEP]] + [x for _, x in split[:SPLIT_KEEP]]
     diverse = _diverse(model, split, chosen)
-    refined = [_refine_angles(model, x) for x in chosen + diverse]
+    refined = list(run(_refine_angles, *_each(model, chosen + diverse)))
     if diverse:
         # A short polish of each, then the full one from the best: ranked before any
         # polish, a chain whose modes sit a little off loses to one with none in band.
-        tried = sorted((polish(model, x, TOURNAMENT_NFEV) for x in refined),
+        tried = sorted(run(polish, *_each(model, refined), [TOURNAMENT_NFEV] * len(refined)),
                        key=lambda f: f.chi2)
         refined = [f.params for f in tried[:NOMINAL_KEEP - 1]]
-    first = fit(model, refined, keep=NOMINAL_KEEP - 1, max_nfev=80)
-    matched = _mode_matched(model, first)
+    first = fit(model, refined, keep=NOMINAL_KEEP - 1, max_nfev=80, run=run)
+    matched = _mode_matched(model, first, run)
     if matched is not None and matched.chi2 < first.chi2:
         first = matched
     floored = obs.with_floor(model.magnification(first.params))
     free = fit(Model(model.spec, floored), [first.params], keep=1, max_nfev=80)
-    return Nominal(_balanced(free, floored), free)
+    return Nominal(_balanced(free, floored, run=run), free)
 
 
-def _mode_matched(model: Model, found: Fit) -> Fit | None:
+def _each(model: Model, starts: list[NDArray[np.float64]]
+          ) -> tuple[list[Model], list[NDArray[np.float64]]]:
+    """A mapper's arguments for one model and many starts."""
+    return [model] * len(starts), starts
+
+
+def _mode_matched(model: Model, found: Fit, run: Mapper = map) -> Fit | None:
     """A belt whose fit found a light load, fitted again from starts that keep the
     chain's lowest mode where ``found`` has it, at every inertia ratio and belt frequency
     of the grid (None for a disk, or a load of at least ``DIVERSE_MIN_RATIO``).
@@ -578,9 +589,9 @@ def _mode_matched(model: Model, found: Fit) -> Fit | None:
         "rotor_damping_ratio": damping, "belt_damping_ratio": [zeta],
         "load_damping_ratio": [zeta]})
         for ratio in LOAD_RATIO_GRID for belt in BELT_HZ_GRID for zeta in MATCHED_DAMPING]
-    ranked = screen(model, starts, split=True, exact=GRID_EXACT)
-    refined = [_refine_angles(model, x) for _, x in ranked[:MATCHED_KEEP]]
-    return fit(model, refined, keep=MATCHED_KEEP, max_nfev=80)
+    ranked = screen(model, starts, split=True, exact=GRID_EXACT, run=run)
+    refined = list(run(_refine_angles, *_each(model, [x for _, x in ranked[:MATCHED_KEEP]])))
+    return fit(model, refined, keep=MATCHED_KEEP, max_nfev=80, run=run)
 
 
 def _diverse(model: Model, ranked: list[tuple[float, NDArray[np.float64]]],
@@ -606,10 +617,11 @@ def _diverse(model: Model, ranked: list[tuple[float, NDArray[np.float64]]],
     return out
 
 
-def _balanced(free: Fit, obs: Observations, spec: ModelSpec | None = None) -> Fit:
+def _balanced(free: Fit, obs: Observations, spec: ModelSpec | None = None, *,
+              run: Mapper = map) -> Fit:
     model = Model(spec or ModelSpec(free.model.spec.chain), obs)
     start = _transplant(model, free)
-    return fit(model, [start, _refine_angles(model, start)], keep=2, max_nfev=80)
+    return fit(model, [start, _refine_angles(model, start)], keep=2, max_nfev=80, run=run)
 
 
 def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None) -> Fit:
@@ -975,66 +987,102 @@ def compare(smaller: Candidate, larger: Candidate) -> Test:
     )
 
 
+Key = tuple[frozenset[Effect], bool]
+"""A model of the search: its term groups, and whether the sensor's bend is in it."""
+
+
+@dataclass(frozen=True)
+class _Job:
+    """One model to fit, with everything its fit starts from: what a worker process needs."""
+
+    spec: ModelSpec
+    base: Fit  # the best fitted model one group smaller (or the same without bend)
+    free: Fit  # the nominal model with free load angles
+    earlier: Fit | None  # the same model fitted with the first pass's weights
+
+
+def _fit_job(obs: Observations, nominal_chi2: float, job: _Job) -> Candidate:
+    """A model fitted and judged on held-out conditions (in a worker or in process)."""
+    if job.earlier is not None:
+        # Fitted by the first pass: again with these weights, from where that pass
+        # left it and from its base here. Only the floor near the chain's modes
+        # moved, so the earlier optimum is a start beside the new one: searching the
+        # chain grid again (most of a bent model's cost) finds the same basin. Its
+        # sensor clock keeps the form that pass chose.
+        model = Model(job.earlier.model.spec, obs)
+        start = _transplant(model, job.base)
+        result = fit(model, [job.earlier.params.copy(), start], keep=2)
+        result = never_worse(model, result, job.base, start)
+    else:
+        result = fit_spec(obs, job.spec, job.base, job.free)
+        if Effect.SENSOR_CLOCK_DRIFT in job.spec.effects:
+            # A sensor may hold its latest sample per SYNC (a sawtooth of delays) or
+            # stamp its own: both forms are tried, the better one kept.
+            other = fit_spec(obs, replace(job.spec, clock_wraps=not job.spec.clock_wraps),
+                             job.base, job.free)
+            if other.chi2 < result.chi2:
+                result = other
+    return Candidate(result.model.spec, result, held_out(result),
+                     max(0.0, nominal_chi2 - result.chi2))
+
+
 class Search:
-    """Models by their set of term groups, fitted once each and kept for comparisons."""
+    """Models by their set of term groups, fitted once each and kept for comparisons.
+
+    The models a step of the search needs are asked for together (``fetch``) and fitted
+    side by side when the search is given worker processes: a model's fit depends only
+    on models one group smaller, so each size is one batch, and the answers are the same
+    as fitted one by one.
+    """
 
     def __init__(self, obs: Observations, nominal: Candidate, free: Fit,
                  progress: Callable[[str], None] | None,
-                 previous: Search | None = None) -> None:
+                 previous: Search | None = None, *, pool: Executor | None = None) -> None:
         self.obs = obs
         self.nominal = nominal
         self.free = free
         self.progress = progress
-        self.cache: dict[tuple[frozenset[Effect], bool], Candidate] = {
-            (frozenset(), False): nominal}
+        self.pool = pool
+        self.cache: dict[Key, Candidate] = {(frozenset(), False): nominal}
         # The same models fitted with other weights (a first pass): where each is from.
         self.previous = {} if previous is None else previous.cache
 
     def get(self, effects: frozenset[Effect], bend: bool = False) -> Candidate:
         """The model with these groups (and the sensor's bend, physics with no id)."""
         key = (effects, bend)
-        if key in self.cache:
-            return self.cache[key]
+        if key not in self.cache:
+            self.fetch([key])
+        return self.cache[key]
+
+    def fetch(self, keys: Iterable[Key]) -> None:
+        """Fit every model of ``keys`` not fitted yet, smaller models first."""
+        todo = [k for k in dict.fromkeys(keys) if k not in self.cache]
+        for size in sorted({(len(k[0]), k[1]) for k in todo}):
+            # A drifting clock is fitted in both its forms: the longest jobs go first, so
+            # that no worker is left with one at the end while the others wait.
+            batch = sorted((k for k in todo if (len(k[0]), k[1]) == size),
+                           key=lambda k: Effect.SENSOR_CLOCK_DRIFT not in k[0])
+            jobs = [self._job(k) for k in batch]
+            if self.progress is not None:
+                self.progress("fitting " + ", ".join(job.spec.label() for job in jobs))
+            chi2 = self.nominal.fit.chi2
+            if self.pool is None or len(jobs) < 2:
+                done = [_fit_job(self.obs, chi2, job) for job in jobs]
+            else:
+                done = list(self.pool.map(_fit_job, itertools.repeat(self.obs),
+                                          itertools.repeat(chi2), jobs))
+            self.cache.update(zip(batch, done, strict=True))
+
+    def _job(self, key: Key) -> _Job:
+        effects, bend = key
         # Start from the best fitted model one group smaller (or the same without bend).
         smaller = [(effects - {e}, bend) for e in effects] + ([(effects, False)] if bend else [])
         bases = [self.cache[k] for k in smaller if k in self.cache]
         base = min(bases, key=lambda c: c.fit.chi2) if bases else self.nominal
-        spec = replace(self.nominal.spec, effects=effects, sensor_bend=bend)
-        if self.progress is not None:
-            self.progress("fitting " + spec.label())
         earlier = self.previous.get(key)
-        if earlier is not None:
-            candidate = self._again(earlier.fit, base.fit)
-            self.cache[key] = candidate
-            return candidate
-        result = fit_spec(self.obs, spec, base.fit, self.free)
-        if Effect.SENSOR_CLOCK_DRIFT in effects:
-            # A sensor may hold its latest sample per SYNC (a sawtooth of delays) or stamp
-            # its own: both forms are tried, the better one kept.
-            other = fit_spec(self.obs, replace(spec, clock_wraps=not spec.clock_wraps),
-                             base.fit, self.free)
-            if other.chi2 < result.chi2:
-                result = other
-        candidate = self._candidate(result)
-        self.cache[key] = candidate
-        return candidate
-
-    def _candidate(self, result: Fit) -> Candidate:
-        return Candidate(result.model.spec, result, held_out(result),
-                         max(0.0, self.nominal.fit.chi2 - result.chi2))
-
-    def _again(self, earlier: Fit, base: Fit) -> Candidate:
-        """A model the first pass fitted, fitted again with these weights from where that
-        pass left it and from its base here.
-
-        Only the floor near the chain's modes moved, so the earlier optimum is a start
-        beside the new one: searching the chain grid again (most of a bent model's cost)
-        finds the same basin. Its sensor clock keeps the form that pass chose.
-        """
-        model = Model(earlier.model.spec, self.obs)
-        start = _transplant(model, base)
-        result = fit(model, [earlier.params.copy(), start], keep=2)
-        return self._candidate(never_worse(model, result, base, start))
+        spec = (earlier.fit.model.spec if earlier is not None
+                else replace(self.nominal.spec, effects=effects, sensor_bend=bend))
+        return _Job(spec, base.fit, self.free, None if earlier is None else earlier.fit)
 
     def best(self, candidates: Iterable[Candidate]) -> Candidate:
         return min(candidates, key=lambda c: c.held.total)
@@ -1048,23 +1096,33 @@ def _beam(search: Search, progress: Callable[[str], None] | None
     frontier = [search.nominal]
     rounds: list[Round] = []
     candidates: tuple[Effect, ...] = tuple(Effect)
+    wide: tuple[Effect, ...] = tuple(Effect)
     for size in range(1, MAX_EFFECTS + 1):
         tried: dict[frozenset[Effect], Test] = {}
-        for rank, parent in enumerate(frontier):
-            # A strong effect can hide a weak one in the first round: the best model so
-            # far tries every group, the rest of the beam only the promising ones.
-            for effect in (tuple(Effect) if rank == 0 else candidates):
-                if effect in parent.effects:
-                    continue
-                effects = parent.effects | {effect}
-                if effects in tried:
-                    continue
+        # A strong effect can hide a weak one in the first round: the best model so far
+        # tries every group (from the third round on, every group that was promising or
+        # gained significantly in the round before), the rest of the beam only the
+        # promising ones.
+        extensions = [(parent, parent.effects | {effect})
+                      for rank, parent in enumerate(frontier)
+                      for effect in (wide if rank == 0 else candidates)
+                      if effect not in parent.effects]
+        search.fetch((effects, False) for _, effects in extensions)
+        for parent, effects in extensions:
+            if effects not in tried:
                 tried[effects] = compare(parent, search.get(effects))
         if size == 1:
             ranked = sorted(tried.values(), key=lambda t: t.chi2_gain, reverse=True)
             top = max(ranked[0].chi2_gain, 0.0)
             keep = [t for t in ranked if t.chi2_gain >= PROMISING_SHARE * top][:PROMISING]
             candidates = tuple(next(iter(t.larger.effects)) for t in keep or ranked[:1])
+        else:
+            # A group that neither stood out alone nor made a significant gain on any
+            # model of the size before is not tried again a size up: most of a third
+            # round's cost.
+            helped = {e for t in tried.values() if t.significant
+                      for e in t.larger.effects - t.smaller.effects}
+            wide = tuple(e for e in Effect if e in candidates or e in helped)
         winners = [t for t in tried.values() if t.significant]
         winners.sort(key=lambda t: t.larger.held.total)
         chosen = None
@@ -1086,6 +1144,7 @@ def _prune(search: Search, model: Candidate) -> Candidate:
     changed = True
     while changed and model.effects:
         changed = False
+        search.fetch((model.effects - {e}, False) for e in model.effects)
         for effect in sorted(model.effects):
             smaller = search.get(model.effects - {effect})
             if not compare(smaller, model).significant:
@@ -1138,6 +1197,8 @@ def _local(search: Search, around: frozenset[Effect], candidates: tuple[Effect, 
     current = _prune(search, search.get(around))
     rounds: list[Round] = []
     while len(current.effects) < MAX_EFFECTS:
+        search.fetch((current.effects | {e}, False) for e in candidates
+                     if e not in current.effects)
         tried = tuple(compare(current, search.get(current.effects | {e}))
                       for e in candidates if e not in current.effects)
         winners = sorted((t for t in tried if t.significant), key=lambda t: t.larger.held.total)
@@ -1168,6 +1229,7 @@ def name_effects(search: Search, progress: Callable[[str], None] | None = None,
         # An id must explain more of the mismatch than is left unexplained, or it may only
         # be soaking up physics that has no id.
         while best.effects:
+            search.fetch((best.effects - {e}, bend) for e in best.effects)
             gains = {e: search.get(best.effects - {e}, bend).held.total - best.held.total
                      for e in best.effects}
             weakest = min(gains, key=lambda e: gains[e])
@@ -1177,6 +1239,10 @@ def name_effects(search: Search, progress: Callable[[str], None] | None = None,
         left = unexplained_of(best)
     named: list[NamedEffect] = []
     sig_cache = sigmas(best.fit) if best.effects else None
+    search.fetch(key for effect in best.effects for key in (
+        (best.effects - {effect}, bend),
+        *(((best.effects - {effect}) | {other}, bend) for other in candidates
+          if other not in best.effects)))
     for effect in best.effects:
         without = search.get(best.effects - {effect}, bend)
         rivals = []
@@ -1214,6 +1280,7 @@ def _with_bend(search: Search, best: Candidate) -> Candidate:
         return best
     current = test.larger
     while current.effects:
+        search.fetch((current.effects - {e}, True) for e in current.effects)
         tests = {e: compare(search.get(current.effects - {e}, True), current)
                  for e in current.effects}
         weakest = min(tests, key=lambda e: tests[e].held_gain)
@@ -1232,8 +1299,8 @@ def _observe(timeline: Timeline) -> Observations:
         return observe(timeline, settle_fallback=_prior_settle)
 
 
-def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
-               ) -> tuple[Observations, Nominal]:
+def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None,
+               run: Mapper = map) -> tuple[Observations, Nominal]:
     """The recording's observations and its nominal fit, as the diagnosis first takes them
     (``fit.before`` unless a chosen model's modes weight it again): fitted to a unit's
     clean twin, what an effect adds to."""
@@ -1241,23 +1308,52 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
         if progress is not None:
             progress("fitting the nominal model")
         first = with_axes_checked(_observe(timeline))
-        fits = fit_nominal(first)
+        fits = fit_nominal(first, run=run)
         obs = with_axes_checked(observe(timeline, settle_fallback=settle_fallback(fits.free)))
         if obs.segments != first.segments:
             if progress is not None:
                 progress(f"segments settled by the fitted chain: {obs.model_settled}, "
                          f"with its ringing fitted out: {obs.ringing}")
-            fits = fit_nominal(obs, previous=fits)
+            fits = fit_nominal(obs, previous=fits, run=run)
         return obs, fits
 
 
-def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None) -> Diagnosis:
-    """The whole diagnosis of one recording's timeline."""
-    obs, fits = nominal_of(timeline, progress)
-    return diagnose_observations(obs, progress, nominal=fits)
+def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None,
+             workers: int = 1) -> Diagnosis:
+    """The whole diagnosis of one recording's timeline; with ``workers`` above 1, the
+    search's models are fitted side by side in that many processes (the same answer)."""
+    with _search_pool(workers) as pool:
+        obs, fits = nominal_of(timeline, progress, map if pool is None else pool.map)
+        return diagnose_observations(obs, progress, nominal=fits, pool=pool)
 
 
-def _reweighted(nominal: Nominal, chosen: Candidate) -> Nominal | None:
+@contextlib.contextmanager
+def _search_pool(workers: int) -> Iterator[Executor | None]:
+    """Worker processes for the search, started at once: each imports the diagnosis
+    (about a second) while this process fits the nominal model."""
+    if workers <= 1:
+        yield None
+        return
+    # Spawned, not forked: a caller's threads (a progress display) may hold locks.
+    with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                             initializer=_one_blas_thread) as pool:
+        for _ in range(workers):
+            pool.submit(_ready)
+        yield pool
+
+
+def _one_blas_thread() -> None:
+    """A worker's linear algebra on one thread, as in the diagnosing process: the
+    matrices are small, and threads of several workers on few cores fight (a nominal fit
+    measured 2.6 times slower)."""
+    threadpool_limits(limits=1, user_api="blas")
+
+
+def _ready() -> None:
+    """Nothing: the task that makes a worker start (and import this module)."""
+
+
+def _reweighted(nominal: Nominal, chosen: Candidate, run: Mapper = map) -> Nominal | None:
     """The nominal model refitted with the floor magnified where the chosen model's chain
     has its modes, when that moves the weights materially; else None.
 
@@ -1272,29 +1368,32 @@ def _reweighted(nominal: Nominal, chosen: Candidate) -> Nominal | None:
         return None
     model = Model(nominal.free.model.spec, floored)
     free = fit(model, [_transplant(model, nominal.free), _transplant(model, chosen.fit)],
-               keep=2, max_nfev=80)
-    return Nominal(_balanced(free, floored), free)
+               keep=2, max_nfev=80, run=run)
+    return Nominal(_balanced(free, floored, run=run), free)
 
 
 def diagnose_observations(obs: Observations, progress: Callable[[str], None] | None = None,
-                          *, nominal: Nominal | None = None) -> Diagnosis:
+                          *, nominal: Nominal | None = None,
+                          pool: Executor | None = None) -> Diagnosis:
     with threadpool_limits(limits=1, user_api="blas"):
         if nominal is None:
             obs = with_axes_checked(obs)
-        fits = nominal if nominal is not None else fit_nominal(obs)
+        run: Mapper = map if pool is None else pool.map
+        fits = nominal if nominal is not None else fit_nominal(obs, run=run)
         around: tuple[frozenset[Effect], tuple[Effect, ...]] | None = None
         previous: Search | None = None  # the first pass, whose fits start the second's
         for _ in range(2):
             # Every model is judged with the weights the nominal fit settled (its floor).
             nominal_fit = fits.balanced
             base = Candidate(nominal_fit.model.spec, nominal_fit, held_out(nominal_fit))
-            search = Search(nominal_fit.model.obs, base, fits.free, progress, previous)
+            search = Search(nominal_fit.model.obs, base, fits.free, progress, previous,
+                            pool=pool)
             previous = search
             extended, named, rounds, left, candidates = name_effects(search, progress, around)
             if not extended.effects or around is not None:
                 break
             around = (extended.effects, candidates)
-            again = _reweighted(fits, extended)
+            again = _reweighted(fits, extended, run)
             if again is None:
                 break
             if progress is not None:

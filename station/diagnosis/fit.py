@@ -23,14 +23,20 @@ condition can inform) refitted on its data alone.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from enum import StrEnum
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares, lsq_linear
 
 from station.diagnosis.model import BlockKind, Model
+
+Mapper = Callable[..., Iterable[Any]]
+"""``map``, or an executor's: how independent polishes are run (side by side in worker
+processes, or one by one), in order either way, so the answer is the same."""
 
 _MAX_NFEV = 40
 _FTOL = 1e-6
@@ -214,7 +220,8 @@ whose phases differed by 18 % ranking its own chain 237th of 294."""
 
 
 def screen(model: Model, starts: list[NDArray[np.float64]], *, split: bool = False,
-           exact: int | None = None) -> list[tuple[float, NDArray[np.float64]]]:
+           exact: int | None = None, run: Mapper = map
+           ) -> list[tuple[float, NDArray[np.float64]]]:
     """Every start with its linear parameters solved, best first (cheap, and it ranks
     the starts well); ``split``: the gain errors' difference solved too.
 
@@ -223,26 +230,58 @@ def screen(model: Model, starts: list[NDArray[np.float64]], *, split: bool = Fal
     true χ², which ranks them as before; the others follow in the first ranking, with
     the χ² it predicted. The second pass and the true χ² are most of a point's cost, and
     the first ranking already puts the best points on top (a flux-harmonics belt's six
-    best of 294 regridded points sat at the pre-ranking's first seven)."""
+    best of 294 regridded points sat at the pre-ranking's first seven).
+
+    ``run`` maps over chunks of ``SCREEN_CHUNK`` starts (each start is independent)."""
     inside_low, inside_high = _inside(model)
-    held, split_held = ((), SCREEN_HELD) if split else (SCREEN_HELD, ())
-    solver = _LinearSolve(model, held, split_held)
     clipped = [np.clip(start, inside_low, inside_high) for start in starts]
     rest: list[tuple[float, NDArray[np.float64]]] = []
     if exact is None or len(starts) <= exact:
         first, passes = clipped, 2
     else:
         # The first pass of every point; the best go on from where it left them.
-        passed = (solver.run(x, 1) for x in clipped)
+        passed = _chunked(run, _first_passes, model, split, clipped)
         quick = sorted(((chi2, x) for x, chi2 in passed), key=lambda item: item[0])
         first, passes = [x for _, x in quick[:exact]], 1
         rest = [(c, np.clip(x, inside_low, inside_high)) for c, x in quick[exact:]]
-    screened = []
-    for x in first:
-        x0 = np.clip(solver.run(x, passes)[0], inside_low, inside_high)
-        screened.append((chi2_at(model, x0), x0))
+    screened = _chunked(run, _last_passes, model, split, first, passes)
     screened.sort(key=lambda item: item[0])
     return screened + rest
+
+
+SCREEN_CHUNK = 16
+"""Starts per task when a screen is spread over worker processes."""
+
+
+def _chunked(run: Mapper, task: Callable[..., list[Any]], model: Model, split: bool,
+             starts: list[NDArray[np.float64]], *extra: int) -> list[Any]:
+    """``task`` over ``starts`` in chunks, its answers in the order of the starts."""
+    chunks = [starts[i:i + SCREEN_CHUNK] for i in range(0, len(starts), SCREEN_CHUNK)]
+    n = len(chunks)
+    args = [[model] * n, [split] * n, chunks, *([value] * n for value in extra)]
+    return [item for part in run(task, *args) for item in part]
+
+
+def _solver(model: Model, split: bool) -> _LinearSolve:
+    held, split_held = ((), SCREEN_HELD) if split else (SCREEN_HELD, ())
+    return _LinearSolve(model, held, split_held)
+
+
+def _first_passes(model: Model, split: bool, starts: list[NDArray[np.float64]]
+                  ) -> list[tuple[NDArray[np.float64], float]]:
+    solver = _solver(model, split)
+    return [solver.run(x, 1) for x in starts]
+
+
+def _last_passes(model: Model, split: bool, starts: list[NDArray[np.float64]], passes: int
+                 ) -> list[tuple[float, NDArray[np.float64]]]:
+    solver = _solver(model, split)
+    inside_low, inside_high = _inside(model)
+    out = []
+    for x in starts:
+        x0 = np.clip(solver.run(x, passes)[0], inside_low, inside_high)
+        out.append((chi2_at(model, x0), x0))
+    return out
 
 
 def polish(model: Model, x0: NDArray[np.float64], max_nfev: int = _MAX_NFEV) -> Fit:
@@ -259,14 +298,15 @@ def polish(model: Model, x0: NDArray[np.float64], max_nfev: int = _MAX_NFEV) -> 
 
 
 def fit(model: Model, starts: list[NDArray[np.float64]], *, keep: int = 2,
-        max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None) -> Fit:
+        max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None,
+        run: Mapper = map) -> Fit:
     """Bounded least squares from the ``keep`` most promising starts, and from every
     ``estimated`` one (a start the data themselves point to, which a ranking by χ² before
     the search could pass over); the best result (``best_of``)."""
     chosen = chosen_starts(model, starts, keep, estimated)
     if not chosen:
         return _unevaluated(model, starts)
-    return best_of(model, chosen, max_nfev=max_nfev)
+    return best_of(model, chosen, max_nfev=max_nfev, run=run)
 
 
 def chosen_starts(model: Model, starts: list[NDArray[np.float64]], keep: int,
@@ -279,7 +319,7 @@ def chosen_starts(model: Model, starts: list[NDArray[np.float64]], keep: int,
 
 
 def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = _MAX_NFEV,
-            finalists: int | None = None) -> Fit:
+            finalists: int | None = None, run: Mapper = map) -> Fit:
     """The best polish from ``chosen``; with ``finalists``, each is first polished for
     ``TOURNAMENT_NFEV`` evaluations and only that many of the best go on.
 
@@ -291,13 +331,12 @@ def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = 
     """
     best: Fit | None = None
     if finalists is not None and len(chosen) > finalists:
-        short = sorted((polish(model, x, TOURNAMENT_NFEV) for x in chosen),
-                       key=lambda f: f.chi2)
+        short = sorted(run(polish, [model] * len(chosen), chosen,
+                           [TOURNAMENT_NFEV] * len(chosen)), key=lambda f: f.chi2)
         best = short[0]
         # A finalist whose short polish already converged has nothing left to gain.
         chosen = [f.params for f in short[:finalists] if not f.converged]
-    for x0 in chosen:
-        candidate = polish(model, x0, max_nfev)
+    for candidate in run(polish, [model] * len(chosen), chosen, [max_nfev] * len(chosen)):
         if best is None or candidate.chi2 < best.chi2:
             best = candidate
     if best is None:

@@ -438,16 +438,26 @@ def _held_out_with(nominal: Nominal, effects: frozenset[Effect]) -> HeldOut:
         return held_out(fit_spec(base.model.obs, spec, base, nominal.free))
 
 
-def run_trial(case: Case, root: Path) -> Trial:
-    """Record ``case`` under ``root`` (recordings and truth apart) and diagnose it blind.
+def trial_recording(case: Case, root: Path) -> Path:
+    """Where ``run_trial`` puts the recording of ``case``."""
+    return root / "recordings" / f"{_file_name(case)}.blf"
+
+
+def _file_name(case: Case) -> str:
+    return case.label.replace(":", "_").replace("@", "-")
+
+
+def run_trial(case: Case, root: Path, workers: int = 1) -> Trial:
+    """Record ``case`` under ``root`` (recordings and truth apart) and diagnose it blind,
+    in ``workers`` processes (one: this process alone, the figure of one core).
     Sets STATION_HOME: run it in a worker process of its own."""
     # Imported here: the simulator side of this module must not need the diagnosis.
     from station.analysis.reader import read_recording  # noqa: PLC0415
     from station.characterize import diagnose_recording  # noqa: PLC0415
 
-    name = case.label.replace(":", "_").replace("@", "-")
+    name = _file_name(case)
     os.environ[HOME_ENV] = str(root / "home" / name)
-    out = root / "recordings" / f"{name}.blf"
+    out = trial_recording(case, root)
     truth = root / "truth" / f"{name}.truth.json"
     for folder in (out.parent, truth.parent):
         folder.mkdir(parents=True, exist_ok=True)
@@ -455,7 +465,7 @@ def run_trial(case: Case, root: Path) -> Trial:
     record_trial(plan, out, truth)
     started = time.perf_counter()
     try:
-        doc = diagnose_recording(out, write_report=False).as_dict()
+        doc = diagnose_recording(out, write_report=False, workers=workers).as_dict()
     except StationError as exc:
         # A characterization the diagnosis refuses is its failure, kept as data (the
         # reason is what ``station diagnose`` would have printed), not a crashed run.
