@@ -1300,14 +1300,17 @@ def _observe(timeline: Timeline) -> Observations:
 
 
 def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None,
-               run: Mapper = map) -> tuple[Observations, Nominal]:
+               run: Mapper = map, first: Observations | None = None
+               ) -> tuple[Observations, Nominal]:
     """The recording's observations and its nominal fit, as the diagnosis first takes them
     (``fit.before`` unless a chosen model's modes weight it again): fitted to a unit's
-    clean twin, what an effect adds to."""
+    clean twin, what an effect adds to. ``first``: the observations before the fitted
+    chain settles any segment, when already taken (``first_observations``)."""
     with threadpool_limits(limits=1, user_api="blas"):
         if progress is not None:
             progress("fitting the nominal model")
-        first = with_axes_checked(_observe(timeline))
+        if first is None:
+            first = first_observations(timeline)
         fits = fit_nominal(first, run=run)
         obs = with_axes_checked(observe(timeline, settle_fallback=settle_fallback(fits.free)))
         if obs.segments != first.segments:
@@ -1318,12 +1321,21 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
         return obs, fits
 
 
+def first_observations(timeline: Timeline) -> Observations:
+    """The observations before the fitted chain settles any segment: where a recording
+    that is not a characterization is refused."""
+    return with_axes_checked(_observe(timeline))
+
+
 def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None,
              workers: int = 1) -> Diagnosis:
     """The whole diagnosis of one recording's timeline; with ``workers`` above 1, the
-    search's models are fitted side by side in that many processes (the same answer)."""
+    search's models are fitted side by side in that many processes (the same answer).
+    A recording the diagnosis refuses is refused before any worker starts."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        first = first_observations(timeline)
     with _search_pool(workers) as pool:
-        obs, fits = nominal_of(timeline, progress, map if pool is None else pool.map)
+        obs, fits = nominal_of(timeline, progress, map if pool is None else pool.map, first)
         return diagnose_observations(obs, progress, nominal=fits, pool=pool)
 
 
