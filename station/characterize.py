@@ -47,7 +47,10 @@ def diagnosis_workers() -> int:
             return max(1, int(raw))
         except ValueError:
             raise InputError(f"{WORKERS_ENV}={raw!r} is not a number of processes") from None
-    return max(1, min(MOST_WORKERS, len(os.sched_getaffinity(0))))
+    # The CPUs this process may run on where the system says (Linux), else all of them.
+    usable = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+              else os.cpu_count() or 1)
+    return max(1, min(MOST_WORKERS, usable))
 
 
 @dataclass(frozen=True)
