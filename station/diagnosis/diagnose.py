@@ -74,6 +74,7 @@ from station.diagnosis.fit import (
     held_out,
     judge_parameters,
     polish,
+    polish_all,
     screen,
     sigmas,
     solve_linear,
@@ -544,12 +545,12 @@ def fit_nominal(obs: Observations, *, previous: Nominal | None = None,
     split = screen(model, starts, split=True, exact=GRID_EXACT, run=run)
     chosen = [x for _, x in ranked[:NOMINAL_KEEP]] + [x for _, x in split[:SPLIT_KEEP]]
     diverse = _diverse(model, split, chosen)
-    refined = list(run(_refine_angles, *_each(model, chosen + diverse)))
+    starts = chosen + diverse
+    refined = list(run(_refine_angles, [model] * len(starts), starts))
     if diverse:
         # A short polish of each, then the full one from the best: ranked before any
         # polish, a chain whose modes sit a little off loses to one with none in band.
-        tried = sorted(run(polish, *_each(model, refined), [TOURNAMENT_NFEV] * len(refined)),
-                       key=lambda f: f.chi2)
+        tried = sorted(polish_all(model, refined, TOURNAMENT_NFEV, run), key=lambda f: f.chi2)
         refined = [f.params for f in tried[:NOMINAL_KEEP - 1]]
     first = fit(model, refined, keep=NOMINAL_KEEP - 1, max_nfev=80, run=run)
     matched = _mode_matched(model, first, run)
@@ -558,12 +559,6 @@ def fit_nominal(obs: Observations, *, previous: Nominal | None = None,
     floored = obs.with_floor(model.magnification(first.params))
     free = fit(Model(model.spec, floored), [first.params], keep=1, max_nfev=80)
     return Nominal(_balanced(free, floored, run=run), free)
-
-
-def _each(model: Model, starts: list[NDArray[np.float64]]
-          ) -> tuple[list[Model], list[NDArray[np.float64]]]:
-    """A mapper's arguments for one model and many starts."""
-    return [model] * len(starts), starts
 
 
 def _mode_matched(model: Model, found: Fit, run: Mapper = map) -> Fit | None:
@@ -595,7 +590,8 @@ def _mode_matched(model: Model, found: Fit, run: Mapper = map) -> Fit | None:
         "load_damping_ratio": [zeta]})
         for ratio in LOAD_RATIO_GRID for belt in BELT_HZ_GRID for zeta in MATCHED_DAMPING]
     ranked = screen(model, starts, split=True, exact=GRID_EXACT, run=run)
-    refined = list(run(_refine_angles, *_each(model, [x for _, x in ranked[:MATCHED_KEEP]])))
+    starts = [x for _, x in ranked[:MATCHED_KEEP]]
+    refined = list(run(_refine_angles, [model] * len(starts), starts))
     return fit(model, refined, keep=MATCHED_KEEP, max_nfev=80, run=run)
 
 
@@ -1071,6 +1067,12 @@ class Search:
             self.fetch([key])
         return self.cache[key]
 
+    def get_all(self, keys: Iterable[Key]) -> list[Candidate]:
+        """The models of ``keys``, those not fitted yet fitted together (``fetch``)."""
+        keys = list(keys)
+        self.fetch(keys)
+        return [self.cache[k] for k in keys]
+
     def fetch(self, keys: Iterable[Key]) -> None:
         """Fit every model of ``keys`` not fitted yet, smaller models first."""
         todo = [k for k in dict.fromkeys(keys) if k not in self.cache]
@@ -1158,10 +1160,10 @@ def _beam(search: Search, progress: Callable[[str], None] | None
                       for rank, parent in enumerate(frontier)
                       for effect in (wide if rank == 0 else candidates)
                       if effect not in parent.effects]
-        search.fetch((effects, False) for _, effects in extensions)
-        for parent, effects in extensions:
+        fitted = search.get_all((effects, False) for _, effects in extensions)
+        for (parent, effects), larger in zip(extensions, fitted, strict=True):
             if effects not in tried:
-                tried[effects] = compare(parent, search.get(effects))
+                tried[effects] = compare(parent, larger)
         if size == 1:
             ranked = sorted(tried.values(), key=lambda t: t.chi2_gain, reverse=True)
             top = max(ranked[0].chi2_gain, 0.0)
@@ -1200,9 +1202,10 @@ def _prune(search: Search, model: Candidate) -> Candidate:
     changed = True
     while changed and model.effects:
         changed = False
-        search.fetch((model.effects - {e}, False) for e in model.effects)
+        smaller = dict(zip(model.effects, search.get_all(
+            (model.effects - {e}, False) for e in model.effects), strict=True))
         for effect in sorted(model.effects):
-            test = compare(search.get(model.effects - {effect}), model)
+            test = compare(smaller[effect], model)
             if test.significant:
                 test = search.refined([test])[0]
             if not test.significant:
@@ -1255,10 +1258,8 @@ def _local(search: Search, around: frozenset[Effect], candidates: tuple[Effect, 
     current = _prune(search, search.get(around))
     rounds: list[Round] = []
     while len(current.effects) < MAX_EFFECTS:
-        search.fetch((current.effects | {e}, False) for e in candidates
-                     if e not in current.effects)
-        tried = tuple(compare(current, search.get(current.effects | {e}))
-                      for e in candidates if e not in current.effects)
+        tried = tuple(compare(current, larger) for larger in search.get_all(
+            (current.effects | {e}, False) for e in candidates if e not in current.effects))
         tried = tuple(search.refined(t for t in tried if t.significant)) + tuple(
             t for t in tried if not t.significant)
         tried = tuple(compare(search.latest(t.smaller), t.larger) for t in tried)
@@ -1291,13 +1292,12 @@ def name_effects(search: Search, progress: Callable[[str], None] | None = None,
         # An id must explain more of the mismatch than is left unexplained, or it may only
         # be soaking up physics that has no id.
         while best.effects:
-            search.fetch((best.effects - {e}, bend) for e in best.effects)
-            gains = {e: search.get(best.effects - {e}, bend).held.total - best.held.total
-                     for e in best.effects}
-            weakest = min(gains, key=lambda e: gains[e])
-            if gains[weakest] > excess:
+            lacking = dict(zip(best.effects, search.get_all(
+                (best.effects - {e}, bend) for e in best.effects), strict=True))
+            weakest = min(lacking, key=lambda e: lacking[e].held.total)
+            if lacking[weakest].held.total - best.held.total > excess:
                 break
-            best = search.get(best.effects - {weakest}, bend)
+            best = lacking[weakest]
         left = unexplained_of(best)
     named: list[NamedEffect] = []
     sig_cache = sigmas(best.fit) if best.effects else None
@@ -1344,9 +1344,9 @@ def _with_bend(search: Search, best: Candidate) -> Candidate:
         return test.smaller
     current = test.larger
     while current.effects:
-        search.fetch((current.effects - {e}, True) for e in current.effects)
-        tests = {e: compare(search.get(current.effects - {e}, True), current)
-                 for e in current.effects}
+        tests = {e: compare(smaller, current) for e, smaller in zip(
+            current.effects, search.get_all((current.effects - {e}, True)
+                                            for e in current.effects), strict=True)}
         weakest = min(tests, key=lambda e: tests[e].held_gain)
         if tests[weakest].significant:
             break

@@ -17,7 +17,13 @@ press against (an ideal sensor's zero delay) is reported as resting there.
 Held-out residuals use the standard one-step approximation of leave-one-out
 refits: from the full fit, one Gauss-Newton step on the data without the
 condition, then the held-out condition's own load angle (a nuisance no other
-condition can inform) refitted on its data alone.
+condition can inform) refitted on its data alone. An exact refit without a condition
+never fits that condition better than the fit with it did (the full fit minimised the
+sum of both parts, the refit only the rest), and at an optimum the linear step agrees;
+a step that predicts less than the fitted χ² comes from a fit short of its optimum or
+from a direction the linearisation misjudges, so the fitted residuals stand instead.
+Development control none@204 (a clean belt): a saturation group gained 20 in χ² and,
+by such a step, 1283 held out, its held-out χ² 574 for 1905 values.
 """
 
 from __future__ import annotations
@@ -297,6 +303,13 @@ def polish(model: Model, x0: NDArray[np.float64], max_nfev: int = _MAX_NFEV) -> 
                np.asarray(result.active_mask, dtype=np.int8), converged=result.status > 0)
 
 
+def polish_all(model: Model, starts: list[NDArray[np.float64]], max_nfev: int = _MAX_NFEV,
+               run: Mapper = map) -> Iterable[Fit]:
+    """``polish`` from each start (side by side when ``run`` is an executor's), in order."""
+    n = len(starts)
+    return run(polish, [model] * n, starts, [max_nfev] * n)
+
+
 def fit(model: Model, starts: list[NDArray[np.float64]], *, keep: int = 2,
         max_nfev: int = _MAX_NFEV, estimated: list[NDArray[np.float64]] | None = None,
         run: Mapper = map) -> Fit:
@@ -331,12 +344,11 @@ def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = 
     """
     best: Fit | None = None
     if finalists is not None and len(chosen) > finalists:
-        short = sorted(run(polish, [model] * len(chosen), chosen,
-                           [TOURNAMENT_NFEV] * len(chosen)), key=lambda f: f.chi2)
+        short = sorted(polish_all(model, chosen, TOURNAMENT_NFEV, run), key=lambda f: f.chi2)
         best = short[0]
         # A finalist whose short polish already converged has nothing left to gain.
         chosen = [f.params for f in short[:finalists] if not f.converged]
-    for candidate in run(polish, [model] * len(chosen), chosen, [max_nfev] * len(chosen)):
+    for candidate in polish_all(model, chosen, max_nfev, run):
         if best is None or candidate.chi2 < best.chi2:
             best = candidate
     if best is None:
@@ -392,6 +404,10 @@ def held_out(result: Fit) -> HeldOut:
         norm = float(local @ local)
         if norm > 0:
             predicted = predicted - local * float(local @ predicted) / norm
+        if float(predicted @ predicted) < fitted:
+            # A refit without the condition cannot fit it better than the fit with it
+            # did: a step that says so is not a refit (module note).
+            predicted = r[inside]
         out[inside] = predicted
         chi2[c] = float(predicted @ predicted)
     return HeldOut(chi2, out)
