@@ -49,7 +49,7 @@ from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -988,6 +988,8 @@ def compare(smaller: Candidate, larger: Candidate) -> Test:
     )
 
 
+_R = TypeVar("_R")
+
 Key = tuple[frozenset[Effect], bool]
 """A model of the search: its term groups, and whether the sensor's bend is in it."""
 
@@ -1084,13 +1086,16 @@ class Search:
             jobs = [self._job(k) for k in batch]
             if self.progress is not None:
                 self.progress("fitting " + ", ".join(job.spec.label() for job in jobs))
-            chi2 = self.nominal.fit.chi2
-            if self.pool is None or len(jobs) < 2:
-                done = [_fit_job(self.obs, chi2, job) for job in jobs]
-            else:
-                done = list(self.pool.map(_fit_job, itertools.repeat(self.obs),
-                                          itertools.repeat(chi2), jobs))
-            self.cache.update(zip(batch, done, strict=True))
+            self.cache.update(zip(batch, self._run(_fit_job, jobs), strict=True))
+
+    def _run(self, job: Callable[..., _R], *args: list[Any]) -> list[_R]:
+        """``job(obs, nominal χ², *each)`` over ``args``, in the workers when there are
+        any and more than one job, in order."""
+        chi2 = self.nominal.fit.chi2
+        if self.pool is None or len(args[0]) < 2:
+            return [job(self.obs, chi2, *each) for each in zip(*args, strict=True)]
+        return list(self.pool.map(job, itertools.repeat(self.obs), itertools.repeat(chi2),
+                                  *args))
 
     def _job(self, key: Key) -> _Job:
         effects, bend = key
@@ -1104,7 +1109,8 @@ class Search:
         return _Job(spec, base.fit, self.free, None if earlier is None else earlier.fit)
 
     def refined(self, tests: Iterable[Test]) -> list[Test]:
-        """``tests`` again, each smaller model first polished from its larger's point.
+        """``tests`` made again against the smaller models as the search now has them,
+        each significant one's smaller model first polished from its larger's point.
 
         A larger model is fitted from its smaller one's optimum, with more freedom and
         more starts; when it lands in a better basin of the smaller model's own
@@ -1117,15 +1123,10 @@ class Search:
         gain is reported against.
         """
         tests = list(tests)
-        pairs = [(t.smaller, t.larger) for t in tests if t.smaller.effects]
+        pairs = [(t.smaller, t.larger) for t in tests if t.significant and t.smaller.effects]
         if pairs:
-            chi2 = self.nominal.fit.chi2
-            args = ([s.fit for s, _ in pairs], [large.fit for _, large in pairs])
-            if self.pool is None or len(pairs) < 2:
-                done = [_refit_job(self.obs, chi2, *pair) for pair in zip(*args, strict=True)]
-            else:
-                done = list(self.pool.map(_refit_job, itertools.repeat(self.obs),
-                                          itertools.repeat(chi2), *args))
+            done = self._run(_refit_job, [s.fit for s, _ in pairs],
+                             [large.fit for _, large in pairs])
             for (smaller, _), better in zip(pairs, done, strict=True):
                 key = (smaller.effects, smaller.spec.sensor_bend)
                 if better is not None and better.fit.chi2 < self.latest(smaller).fit.chi2:
@@ -1176,10 +1177,7 @@ def _beam(search: Search, progress: Callable[[str], None] | None
             helped = {e for t in tried.values() if t.significant
                       for e in t.larger.effects - t.smaller.effects}
             wide = tuple(e for e in Effect if e in candidates or e in helped)
-        significant = [e for e, t in tried.items() if t.significant]
-        tried.update(zip(significant, search.refined(tried[e] for e in significant),
-                         strict=True))
-        tried = {e: compare(search.latest(t.smaller), t.larger) for e, t in tried.items()}
+        tried = dict(zip(tried, search.refined(tried.values()), strict=True))
         current = search.latest(current)
         winners = [t for t in tried.values() if t.significant]
         winners.sort(key=lambda t: t.larger.held.total)
@@ -1205,9 +1203,7 @@ def _prune(search: Search, model: Candidate) -> Candidate:
         smaller = dict(zip(model.effects, search.get_all(
             (model.effects - {e}, False) for e in model.effects), strict=True))
         for effect in sorted(model.effects):
-            test = compare(smaller[effect], model)
-            if test.significant:
-                test = search.refined([test])[0]
+            test = search.refined([compare(smaller[effect], model)])[0]
             if not test.significant:
                 model = test.smaller
                 changed = True
@@ -1258,11 +1254,8 @@ def _local(search: Search, around: frozenset[Effect], candidates: tuple[Effect, 
     current = _prune(search, search.get(around))
     rounds: list[Round] = []
     while len(current.effects) < MAX_EFFECTS:
-        tried = tuple(compare(current, larger) for larger in search.get_all(
-            (current.effects | {e}, False) for e in candidates if e not in current.effects))
-        tried = tuple(search.refined(t for t in tried if t.significant)) + tuple(
-            t for t in tried if not t.significant)
-        tried = tuple(compare(search.latest(t.smaller), t.larger) for t in tried)
+        tried = tuple(search.refined(compare(current, larger) for larger in search.get_all(
+            (current.effects | {e}, False) for e in candidates if e not in current.effects)))
         current = search.latest(current)
         winners = sorted((t for t in tried if t.significant), key=lambda t: t.larger.held.total)
         chosen = winners[0].larger if winners else None
@@ -1337,9 +1330,7 @@ def _with_bend(search: Search, best: Candidate) -> Candidate:
     soak some of it up. So the bend is tried on the chosen model, and each id is then
     asked to earn its place again beside it.
     """
-    test = compare(best, search.get(best.effects, bend=True))
-    if test.significant:
-        test = search.refined([test])[0]
+    test = search.refined([compare(best, search.get(best.effects, bend=True))])[0]
     if not test.significant:
         return test.smaller
     current = test.larger
