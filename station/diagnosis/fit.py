@@ -1,11 +1,14 @@
 """Fitting a model to observations, judging its parameters, and holding conditions out.
 
 The solver is scipy's bounded least squares with a Jacobian assembled from
-the model's structure: the linear parameters' columns come straight from the
-model's design, the per-condition load angles share one finite difference
-(each touches only its own condition's rows), and only the few remaining
-nonlinear parameters are differenced one by one. A fit of the full model then
-costs tens of milliseconds per iteration instead of a second.
+the model's structure: the linear parameters' columns come from the model's
+design and what each moves through every segment's slip and spring
+(``Model.linear_jacobian``), the per-condition load angles share one finite
+difference (each touches only its own condition's rows), and only the few
+remaining parameters (nonlinear, and friction's levels) are differenced one
+by one. A fit of the full model then costs tens of milliseconds per iteration
+instead of a second. The columns must be the residuals' own derivatives: the
+solver stops where they say the gradient vanishes.
 
 A parameter that ends on one of its bounds is not a result. The bounds are
 physical (a filter cannot answer before it is asked, a damping ratio is not
@@ -114,21 +117,20 @@ def jacobian(model: Model, p: NDArray[np.float64]) -> NDArray[np.float64]:
     out = np.empty((base.size, p.size))
     lin = model.linear_index()
     if lin.size:
-        _, design = model.linear_design(p)
-        out[:, lin] = design.T
+        out[:, lin] = model.linear_jacobian(p).T
     rho = model.layout.slices["load_angle_rad"]
     shifted = p.copy()
     shifted[rho] += _STEP
-    column = (model.residuals(shifted) - base) / _STEP
+    column = (model.residuals_near(shifted, p) - base) / _STEP
     cond = model.residual_conditions()
     out[:, rho] = 0.0
     inside = cond >= 0
     out[np.flatnonzero(inside), rho.start + cond[inside]] = column[inside]
-    for i in model.layout.indices(BlockKind.NONLINEAR):
+    for i in model.differenced_index():
         step = _STEP * max(1.0, abs(p[i]))
         shifted = p.copy()
         shifted[i] += step
-        out[:, i] = (model.residuals(shifted) - base) / step
+        out[:, i] = (model.residuals_near(shifted, p) - base) / step
     return out
 
 

@@ -21,7 +21,7 @@ import pytest
 from station.analysis.reader import read_recording
 from station.core import Effect
 from station.diagnosis.diagnose import Diagnosis, LocatedKind, Unexplained, diagnose
-from station.diagnosis.report import MAX_HARMONIC_ROWS, render_html, write_report
+from station.diagnosis.report import MAX_HARMONIC_ROWS, _chi2, render_html, write_report
 from station.sim.concealed import Case, TrialClass, plan_trial, record_trial
 
 SOURCE = "recordings/SN900024-characterize.blf"
@@ -90,7 +90,7 @@ def test_report_shows_each_named_effect_with_its_evidence_and_parameters(
         assert effect.effect.value in text
         for key, order, before, after in effect.explains:
             assert f"{key.label()}, order {order}" in text
-            assert f"{before:.1f} → {after:.1f}" in text
+            assert f"{_chi2(before)} → {_chi2(after)}" in text  # as the page rounds χ²
     detent = next(e for e in diagnosis.effects if e.effect is Effect.DETENT_TORQUE)
     assert detent.explains, "cogging must explain located cells for the page to show them"
     assert "± " in text  # parameters carry their σ
