@@ -68,7 +68,7 @@ NEAR_REFINE = 4
 NEAR_START = 1e-3
 NEAR_DONE = 1e-14
 """Newton–Schulz passes at most, the error of the start beyond which the matrix is
-inverted afresh instead, and the error at which refining stops (``residuals_near``):
+inverted afresh instead, and the error at which refining stops (``Model.step``):
 a difference step leaves an error near 1e-6, gone to rounding after two passes."""
 TRIM_LAG_SOFTEST = 0.05
 """Below this spring (|mean ∂torque/∂θe| per A of current, i.e. cos ρ near a load angle of
@@ -1071,12 +1071,18 @@ class Model:
         magnifies a torque error (``magnification``).
         """
         stiff = (np.mean(self.torque_slope(p, m), axis=1) * self.rotor_teeth)[:, None]
-        t = m.transfer
-        drag = m.friction_slope[:, None] / self.jw
-        theta = t.a + t.b * drag
-        need = t.c + t.d * drag
+        theta, need = self.chain_response(m)
         out: NDArray[np.complex128] = stiff * theta - need
         return out
+
+    def chain_response(self, m: Motion) -> tuple[NDArray[np.complex128],
+                                                  NDArray[np.complex128]]:
+        """Rotor angle and torque needed per unit of the load's acceleration, (S, K) each,
+        friction linearised about its mean slope: what ``sensitivity`` and ``step``
+        put the spring against."""
+        t = m.transfer
+        drag = m.friction_slope[:, None] / self.jw
+        return t.a + t.b * drag, t.c + t.d * drag
 
     def error(self, p: NDArray[np.float64], m: Motion,
               made_grid: NDArray[np.float64] | None = None) -> NDArray[np.complex128]:
@@ -1107,12 +1113,11 @@ class Model:
         k = self.obs.orders
         s = self.torque_slope(p, m) @ self.slope_analyse  # s_h, h = 0 … 2K, (S, 2K + 1)
         both = np.concatenate([np.conj(s[:, :0:-1]), s], axis=1)[:, self.order_pairs]
-        t = m.transfer
-        drag = m.friction_slope[:, None] / self.jw
-        theta = self.rotor_teeth * (t.a + t.b * drag)
+        theta, need = self.chain_response(m)
+        theta = self.rotor_teeth * theta
         p_mat = both[:, 0] * theta[:, None, :]  # s_{k−j}: order j's swing at order k
         diagonal = np.arange(k)
-        p_mat[:, diagonal, diagonal] -= t.c + t.d * drag
+        p_mat[:, diagonal, diagonal] -= need
         q_mat = both[:, 1] * np.conj(theta)[:, None, :]  # s_{k+j}: its mirror image
         plus, minus = p_mat + q_mat, p_mat - q_mat
         matrix = np.empty((self.obs.count, 2 * k, 2 * k))
@@ -1122,35 +1127,37 @@ class Model:
         matrix[:, k:, k:] = minus.real
         return matrix
 
-    def step(self, p: NDArray[np.float64], m: Motion) -> Step:
-        """The Newton step at ``p`` (``Step``), its derivative inverted afresh."""
-        inverse = np.asarray(np.linalg.inv(self.step_matrix(p, m)), dtype=np.float64)
+    def step(self, p: NDArray[np.float64], m: Motion, near: Step | None = None) -> Step:
+        """The Newton step at ``p`` (``Step``), its derivative inverted afresh, or with
+        ``near`` (a step a difference away) that step's inverse refined by Newton–Schulz
+        (``NEAR_REFINE``): a Jacobian's differenced columns would otherwise invert every
+        segment's matrix again, most of an evaluation's cost."""
+        matrix = self.step_matrix(p, m)
+        inverse = None
+        if near is not None:
+            inverse = near.inverse
+            eye = np.eye(matrix.shape[1])
+            for _ in range(NEAR_REFINE):
+                # X ← X·(2I − M·X) squares the error I − M·X.
+                left = eye - matrix @ inverse
+                size = float(np.max(np.abs(left)))
+                if size > NEAR_START:
+                    inverse = None
+                    break
+                inverse = inverse + inverse @ left
+                if size * size < NEAR_DONE:  # what is left after this pass
+                    break
+        if inverse is None:
+            inverse = np.asarray(np.linalg.inv(matrix), dtype=np.float64)
         return Step(inverse, self.radius * m.sensor * self.weight)
 
     def residuals_near(self, p: NDArray[np.float64], base: NDArray[np.float64]
                        ) -> NDArray[np.float64]:
-        """``residuals`` at ``p``, a difference step from ``base``, with the step's inverse
-        refined from ``base``'s (``NEAR_REFINE``) rather than inverted afresh: each of a
-        Jacobian's differenced columns would otherwise invert every segment's matrix
-        again, most of an evaluation's cost. Not kept (``residuals`` keeps the exact)."""
+        """``residuals`` at ``p``, a difference step from ``base``, the step refined from
+        ``base``'s (``step``). Not kept: ``residuals`` keeps the exact."""
         m = self.motion(p)
-        made = self.torque(p, m)
-        matrix = self.step_matrix(p, m)
-        inverse = self.made_and_step(base)[1].inverse
-        eye = np.eye(matrix.shape[1])
-        for _ in range(NEAR_REFINE):
-            # Newton–Schulz: X ← X·(2I − M·X) squares the error I − M·X.
-            left = eye - matrix @ inverse
-            size = float(np.max(np.abs(left)))
-            if size > NEAR_START:
-                inverse = np.asarray(np.linalg.inv(matrix), dtype=np.float64)
-                break
-            inverse = inverse + inverse @ left
-            if size * size < NEAR_DONE:  # what is left after this pass
-                break
-        step = Step(inverse, self.radius * m.sensor * self.weight)
-        return self._flatten(step.apply(self.error(p, m, made)),
-                             self.dc_error(p, m, made) * self.dc_weight(), self.prior(p))
+        return self._residuals_of(p, m, self.torque(p, m),
+                                  self.step(p, m, near=self.made_and_step(base)[1]))
 
     # ------------------------------------------------------------------ linear part
     def linear_index(self) -> NDArray[np.intp]:
@@ -1319,8 +1326,7 @@ class Model:
         slope = self.torque_slope(p, m)
         bend = (self.torque_slope(p, m.shifted(ANGLE_STEP)) - slope) / ANGLE_STEP
         made, step = self.made_and_step(p)
-        t = m.transfer
-        theta = t.a + t.b * m.friction_slope[:, None] / self.jw
+        theta, _ = self.chain_response(m)
         swing = ((theta * step.alpha(self.error(p, m, made))) @ self.synth).real
         d_slope = slopes + d_lag[:, :, None] * bend[None]
         d_error = (d_lag[:, :, None] * self.analysed(slope)[None]
@@ -1409,8 +1415,10 @@ class Model:
         return self._residuals.get(p, lambda: self._residuals_at(p)).copy()
 
     def _residuals_at(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
-        m = self.motion(p)
-        made, step = self.made_and_step(p)
+        return self._residuals_of(p, self.motion(p), *self.made_and_step(p))
+
+    def _residuals_of(self, p: NDArray[np.float64], m: Motion, made: NDArray[np.float64],
+                      step: Step) -> NDArray[np.float64]:
         return self._flatten(step.apply(self.error(p, m, made)),
                              self.dc_error(p, m, made) * self.dc_weight(), self.prior(p))
 
