@@ -3,12 +3,14 @@
 The solver is scipy's bounded least squares with a Jacobian assembled from
 the model's structure: the linear parameters' columns come from the model's
 design and what each moves through every segment's slip and spring
-(``Model.linear_jacobian``), the per-condition load angles share one finite
-difference (each touches only its own condition's rows), and only the few
-remaining parameters (nonlinear, and friction's levels) are differenced one
-by one. A fit of the full model then costs tens of milliseconds per iteration
-instead of a second. The columns must be the residuals' own derivatives: the
-solver stops where they say the gradient vanishes.
+(``Model.linear_jacobian``); the remaining parameters (nonlinear, and
+friction's levels) and the per-condition load angles (which share one
+column's work: each touches only its own condition's rows) enter only what
+each segment's motion is made from, and those inputs are differenced and
+carried through the rest by the chain rule (``Model.motion_columns``). A fit
+of the full model then costs milliseconds per iteration instead of a second.
+The columns must be the residuals' own derivatives: the solver stops where
+they say the gradient vanishes.
 
 A parameter that ends on one of its bounds is not a result. The bounds are
 physical (a filter cannot answer before it is asked, a damping ratio is not
@@ -52,6 +54,10 @@ _FTOL = 1e-6
 """Relative change of χ² at which a fit stops: a millionth of a χ² of thousands is far
 below anything a comparison of models resolves."""
 _STEP = 1e-6
+_STEP_SPAN = 1e-2
+"""A differenced parameter's step is ``_STEP`` of its value, of 1, or of this share of its
+range, whichever is largest: a clock's drift (±5000 ppm) moved by 1e-6 ppm moved each
+sample by 1e-12 of a period, and the rounding of its phases put its column 2.4e-4 off."""
 HELD_RCOND = 1e-4
 """Singular values of the held-out step below this fraction of the largest are dropped."""
 HELD_TRUST = 4.0
@@ -113,24 +119,30 @@ class Fit:
 
 def jacobian(model: Model, p: NDArray[np.float64]) -> NDArray[np.float64]:
     """d residuals / d parameters, from the model's structure (see the module note)."""
-    base = model.residuals(p)
-    out = np.empty((base.size, p.size))
+    out = np.empty((model.residuals(p).size, p.size))
     lin = model.linear_index()
     if lin.size:
         out[:, lin] = model.linear_jacobian(p).T
     rho = model.layout.slices["load_angle_rad"]
-    shifted = p.copy()
-    shifted[rho] += _STEP
-    column = (model.residuals_near(shifted, p) - base) / _STEP
+    # Every load angle moved at once: each touches only its own condition's rows.
+    angles = p.copy()
+    angles[rho] += _STEP
+    moving = model.motion_index()
+    low, high = model.layout.bounds()
+    span = np.where(np.isfinite(high - low), high - low, 0.0)[moving]
+    scale = np.maximum(np.maximum(1.0, np.abs(p[moving])), _STEP_SPAN * span)
+    steps = np.concatenate([[_STEP], _STEP * scale])
+    points = [angles]
+    for i, step in zip(moving, steps[1:], strict=True):
+        shifted = p.copy()
+        shifted[i] += step
+        points.append(shifted)
+    columns = model.motion_columns(p, points, steps)
     cond = model.residual_conditions()
     out[:, rho] = 0.0
     inside = cond >= 0
-    out[np.flatnonzero(inside), rho.start + cond[inside]] = column[inside]
-    for i in model.differenced_index():
-        step = _STEP * max(1.0, abs(p[i]))
-        shifted = p.copy()
-        shifted[i] += step
-        out[:, i] = (model.residuals_near(shifted, p) - base) / step
+    out[np.flatnonzero(inside), rho.start + cond[inside]] = columns[inside, 0]
+    out[:, moving] = columns[:, 1:]
     return out
 
 

@@ -43,7 +43,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -453,6 +453,7 @@ class Motion:
     i_a: NDArray[np.float64]
     i_b: NDArray[np.float64]
     modulation: NDArray[np.float64]  # once-per-revolution factor per segment (S, 1)
+    taken: NDArray[np.float64]  # mean torque the chain takes: drag and friction (S,)
     lag: NDArray[np.float64]  # each segment's slip from its load angle (``trim_lag``), (S,)
     _powers: dict[int, NDArray[np.complex128]] = field(
         default_factory=dict)
@@ -493,6 +494,48 @@ class Motion:
         if turn == 2:
             return -c, -s
         return -s, c
+
+
+@dataclass(frozen=True)
+class _Inputs:
+    """What a motion is made from at one parameter point, (S, …) each: every piece that a
+    nonlinear parameter enters (``Model.motion_columns``)."""
+
+    sensor: NDArray[np.complex128]
+    alpha: NDArray[np.complex128]
+    transfer: Transfer
+    swing_above: NDArray[np.complex128] | None  # rotor angle at the orders above K
+    friction: NDArray[np.complex128]
+    friction_slope: NDArray[np.float64]
+    taken: NDArray[np.float64]
+    rho: NDArray[np.float64]  # each segment's load angle
+    i_a: NDArray[np.float64]
+    i_b: NDArray[np.float64]
+    modulation: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _Linearised:
+    """What every analytic Jacobian column at one point shares (``Model.linear_jacobian``,
+    ``Model.motion_columns``): the motion before and after its slip, the magnetic spring
+    on the grid at both with its bend along the angle, and the load acceleration the
+    step asks for, as the rotor's swing on the grid."""
+
+    motion: Motion
+    first: Motion  # before the slip (``trim_lag``)
+    slope: NDArray[np.float64]  # ∂torque/∂θe on the grid, (S, N)
+    bend: NDArray[np.float64]  # ∂²torque/∂θe², (S, N)
+    slope1: NDArray[np.float64]  # both before the slip
+    bend1: NDArray[np.float64]
+    acts: NDArray[np.bool_]  # segments whose slip moves (soft springs and caps do not)
+    step: Step
+    alpha: NDArray[np.complex128]  # the step's load acceleration, (S, K)
+    swing: NDArray[np.float64]  # its rotor angle on the grid (mech. rad), (S, N)
+
+    @property
+    def spring1(self) -> NDArray[np.float64]:
+        out: NDArray[np.float64] = self.slope1.mean(axis=1)
+        return out
 
 
 @dataclass(frozen=True)
@@ -548,6 +591,8 @@ CHAIN_KEYS = ("log_rotor_hz", "rotor_damping_ratio", "log_load_ratio", "log_belt
 """What the chain's inertias, springs and dampers are made of (``Model.stages``)."""
 FRICTION_KEYS = ("friction_coulomb", "log_friction_smoothing")
 """What the load's friction is made of, beside the load's motion (``Model.friction_torque``)."""
+TORQUE_KEYS = ("flux", "saturation", "detent", "reluctance")
+"""What the torque reads beside the motion (``Model.torque``, ``Model.torque_slope``)."""
 
 _T = TypeVar("_T")
 
@@ -629,7 +674,8 @@ class Model:
                                  NDArray[np.complex128] | None]] = self._memo(sensor)
         self._friction: _Memo[tuple[NDArray[np.complex128], NDArray[np.float64],
                                     NDArray[np.float64]]] = self._memo((*sensor, *FRICTION_KEYS))
-        self._chain: _Memo[tuple[Transfer, NDArray[np.complex128] | None]] = self._memo(
+        self._chain: _Memo[tuple[Transfer, NDArray[np.complex128] | None,
+                                 NDArray[np.float64]]] = self._memo(
             CHAIN_KEYS)
         self._coefficients: _Memo[tuple[NDArray[np.float64], NDArray[np.complex128],
                                         NDArray[np.float64], NDArray[np.complex128]]] = (
@@ -637,6 +683,8 @@ class Model:
         self._currents: _Memo[tuple[NDArray[np.float64], NDArray[np.float64]]] = self._memo(
             CURRENT_KEYS)
         self._residuals: _Memo[NDArray[np.float64]] = _Memo(np.arange(self.layout.size))
+        self._linear_memo: _Memo[_Linearised] = _Memo(np.arange(self.layout.size))
+        self._torque_index = self._memo(TORQUE_KEYS).index
         # The torque made and the error's step on the motion at p: the residuals and the
         # linear design (both asked for at each Jacobian's point) share them.
         self._made: _Memo[tuple[NDArray[np.float64], Step]] = _Memo(
@@ -905,17 +953,17 @@ class Model:
                         ) -> tuple[NDArray[np.complex128], NDArray[np.float64],
                                    NDArray[np.float64]]:
         """Friction on the load evaluated on its measured velocity: per-order torque (S, K),
-        mean slope dF/dv (S,), and the velocity on the grid (S, N)."""
+        mean slope dF/dv (S,), and mean torque (S,)."""
         if not self.layout.has("friction_coulomb"):
             zeros = np.zeros_like(alpha)
-            return zeros, np.zeros(self.obs.count), np.zeros((self.obs.count, GRID))
+            return zeros, np.zeros(self.obs.count), np.zeros(self.obs.count)
         velocity = self.load_velocity(alpha)
         shapes = self.friction_shapes(p, velocity)
         c = self._p(p, "friction_coulomb")
         force = c[0] * shapes[0] + c[1] * shapes[1]
         slope = c[0] * shapes[2] + c[1] * shapes[3]
         # The load's viscous part is in the chain already, as the load stage's damping.
-        return self.analysed(force), slope.mean(axis=1), velocity
+        return self.analysed(force), slope.mean(axis=1), force.mean(axis=1)
 
     def load_velocity(self, alpha: NDArray[np.complex128]) -> NDArray[np.float64]:
         """The load's angular velocity on the grid: its mean plus the measured ripple."""
@@ -986,31 +1034,42 @@ class Model:
                  else beyond / (self.sensor_response(p, beyond=True) * self.radius))
         return sensor, alpha, above
 
-    def _chain_transfer(self, p: NDArray[np.float64]
-                        ) -> tuple[Transfer, NDArray[np.complex128] | None]:
-        """The chain's transfer at the modelled orders, and its θ per α above them."""
+    def _chain_transfer(self, p: NDArray[np.float64]) -> tuple[
+            Transfer, NDArray[np.complex128] | None, NDArray[np.float64]]:
+        """The chain's transfer at the modelled orders, its θ per α above them, and the
+        mean torque its damping takes (``drag``)."""
         stages = self.stages(p)
         above = None if self.beyond is None else self.transfer(stages, self.jw_beyond).a
-        return self.transfer(stages), above
+        return self.transfer(stages), above, self._drag(stages)
 
     def _motion(self, p: NDArray[np.float64]) -> Motion:
-        sensor, alpha, above = self._alpha.get(p, lambda: self._load_motion(p))
-        transfer, theta_above = self._chain.get(p, lambda: self._chain_transfer(p))
-        force, slope, _ = self._friction.get(p, lambda: self.friction_torque(p, alpha))
-        theta = transfer.a * alpha + transfer.b * force
+        x = self._inputs(p)
+        transfer = x.transfer
+        theta = transfer.a * x.alpha + transfer.b * x.friction
         ripple = (theta @ self.synth).real  # rotor angle ripple on the grid (mech. rad)
-        if above is not None and theta_above is not None:
-            ripple = ripple + ((theta_above * above) @ self.synth_beyond).real
-        rho = self._p(p, "load_angle_rad")[self.obs.condition]
-        te = self.x[None, :] - rho[:, None] + self.rotor_teeth * ripple
-        i_a, i_b = self.currents(p)
-        modulation = self.modulation(p)
+        if x.swing_above is not None:
+            ripple = ripple + (x.swing_above @ self.synth_beyond).real
+        te = self.x[None, :] - x.rho[:, None] + self.rotor_teeth * ripple
         sin_te, cos_te = np.sin(te), np.cos(te)
-        first = Motion(alpha, sensor, transfer, force, slope, te, sin_te, cos_te, i_a, i_b,
-                       modulation, np.zeros(self.obs.count))
+        first = Motion(x.alpha, x.sensor, transfer, x.friction, x.friction_slope, te, sin_te,
+                       cos_te, x.i_a, x.i_b, x.modulation, x.taken, np.zeros(self.obs.count))
         # One angle per segment: its grid's sines are rotated, not evaluated again (the
         # trigonometry on the grid is most of a motion's own cost).
         return first.shifted(self.trim_lag(p, first))
+
+    def _inputs(self, p: NDArray[np.float64]) -> _Inputs:
+        sensor, alpha, above = self._alpha.get(p, lambda: self._load_motion(p))
+        transfer, theta_above, drag = self._chain.get(p, lambda: self._chain_transfer(p))
+        force, slope, mean_force = self._friction.get(
+            p, lambda: self.friction_torque(p, alpha))
+        taken = drag
+        if self.layout.has("friction_coulomb"):
+            taken = taken + self.gear_ratio * mean_force
+        swing_above = None if above is None or theta_above is None else theta_above * above
+        i_a, i_b = self.currents(p)
+        return _Inputs(sensor, alpha, transfer, swing_above, force, slope, taken,
+                       self._p(p, "load_angle_rad")[self.obs.condition], i_a, i_b,
+                       self.modulation(p))
 
     def trim_lag(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
         """How far each segment's rotor sits from its condition's load angle (electrical
@@ -1281,7 +1340,7 @@ class Model:
 
     def linear_jacobian(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         """d residuals / d linear parameter, (n, L), the friction levels' excepted
-        (``differenced_index``).
+        (``motion_index``).
 
         ``linear_design`` holds each segment's slip (``trim_lag``) and the error's scale
         where the current point left them, which is what a linear solve at fixed
@@ -1297,8 +1356,8 @@ class Model:
         (the basis one step along it, differenced: the bases are smooth in the angle).
         """
         _, design, bases = self._linear_design(p)
-        m = self.motion(p)
-        first = m.shifted(-m.lag)
+        lin = self.linearised(p)
+        m, first = lin.motion, lin.first
 
         def slopes_of(here: NDArray[np.float64], at: Motion) -> NDArray[np.float64]:
             along = np.stack(self.linear_bases(p, at.shifted(ANGLE_STEP)))
@@ -1308,40 +1367,136 @@ class Model:
         slopes = slopes_of(bases, m)
         bases1 = np.stack(self.linear_bases(p, first))
         slopes1 = slopes_of(bases1, first)
-        # The slip (trim_lag): (level − made)/spring on the unslipped motion, where it acts.
-        spring1 = self.torque_slope(p, first).mean(axis=1)
+        d_lag = self._slip_change(lin, bases1.mean(axis=2), slopes1.mean(axis=2))
+        # What the slip and the spring change: the torque made, and the step. The step's
+        # own change, −step·(d matrix)·step(error), is the torque the changed spring makes
+        # on the swing the step already asks for.
+        d_slope = slopes + d_lag[:, :, None] * lin.bend[None]
+        d_error = (d_lag[:, :, None] * self.analysed(lin.slope)[None]
+                   - self.rotor_teeth * self.analysed(d_slope * lin.swing[None]))
+        d_dc = d_lag * lin.slope.mean(axis=1)
+        dc_weight = self.dc_weight()
+        extra = np.array([self._flatten(h, d * dc_weight, np.zeros(1))
+                          for h, d in zip(lin.step.apply(d_error), d_dc, strict=True)])
+        out: NDArray[np.float64] = design + extra.reshape(design.shape)
+        return out
+
+    def linearised(self, p: NDArray[np.float64]) -> _Linearised:
+        return self._linear_memo.get(p, lambda: self._linearise(p))
+
+    def _linearise(self, p: NDArray[np.float64]) -> _Linearised:
+        m = self.motion(p)
+        first = m.shifted(-m.lag)
+
+        def slope_and_bend(at: Motion) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+            slope = self.torque_slope(p, at)
+            return slope, (self.torque_slope(p, at.shifted(ANGLE_STEP)) - slope) / ANGLE_STEP
+
+        slope, bend = slope_and_bend(m)
+        slope1, bend1 = slope_and_bend(first)
+        spring1 = slope1.mean(axis=1)
         acts = ((np.abs(spring1) > TRIM_LAG_SOFTEST * self.amp[:, 0])
                 & (np.abs(m.lag) < TRIM_LAG_MAX))
-        d_made1 = bases1.mean(axis=2)
+        made, step = self.made_and_step(p)
+        theta, _ = self.chain_response(m)
+        alpha = step.alpha(self.error(p, m, made))
+        swing = ((theta * alpha) @ self.synth).real
+        return _Linearised(m, first, slope, bend, slope1, bend1, acts, step, alpha, swing)
+
+    def _slip_change(self, lin: _Linearised, d_made1: NDArray[np.float64],
+                     d_spring1: NDArray[np.float64]) -> NDArray[np.float64]:
+        """How far each segment's slip (``trim_lag``: (level − made)/spring on the motion
+        before it, where it acts) moves, (P, S), for changes of the torque made and of the
+        spring there, (P, S) each."""
         cond = self.obs.condition
         conditions = len(self.obs.conditions)
         count = np.maximum(np.bincount(cond, minlength=conditions), 1)
         d_level = np.stack([np.bincount(cond, weights=row, minlength=conditions) / count
                             for row in d_made1])[:, cond]
-        safe = np.where(acts, spring1, np.inf)
-        d_lag = (d_level - d_made1 - m.lag * slopes1.mean(axis=2)) / safe
-        # What the slip and the spring change: the torque made, and the step. The step's
-        # own change, −step·(d matrix)·step(error), is the torque the changed spring makes
-        # on the swing the step already asks for.
-        slope = self.torque_slope(p, m)
-        bend = (self.torque_slope(p, m.shifted(ANGLE_STEP)) - slope) / ANGLE_STEP
-        made, step = self.made_and_step(p)
-        theta, _ = self.chain_response(m)
-        swing = ((theta * step.alpha(self.error(p, m, made))) @ self.synth).real
-        d_slope = slopes + d_lag[:, :, None] * bend[None]
-        d_error = (d_lag[:, :, None] * self.analysed(slope)[None]
-                   - self.rotor_teeth * self.analysed(d_slope * swing[None]))
-        d_dc = d_lag * slope.mean(axis=1)
-        dc_weight = self.dc_weight()
-        extra = np.array([self._flatten(h, d * dc_weight, np.zeros(1))
-                          for h, d in zip(step.apply(d_error), d_dc, strict=True)])
-        out: NDArray[np.float64] = design + extra.reshape(design.shape)
+        safe = np.where(lin.acts, lin.spring1, np.inf)
+        out: NDArray[np.float64] = (d_level - d_made1 - lin.motion.lag * d_spring1) / safe
         return out
 
-    def differenced_index(self) -> NDArray[np.intp]:
-        """Parameters whose Jacobian columns are differenced one by one: the nonlinear
-        ones, and the friction levels, which move the load's swing and with it every
-        rotor angle of the grid."""
+    def motion_columns(self, p: NDArray[np.float64], points: list[NDArray[np.float64]],
+                       steps: NDArray[np.float64]) -> NDArray[np.float64]:
+        """d residuals / d parameter, (n, P), for parameters that enter only a motion's
+        inputs (``_Inputs``: the chain, the sensor, the friction, the load angles), each
+        given as ``p`` moved by its ``steps`` entry (``points``).
+
+        The inputs are differenced centrally (they are cheap) and carried through the rest
+        by the chain rule: the rotor's swing moves its angle on the grid, and with it the torque
+        made (the spring), the slip (``trim_lag``) and the spring itself, which changes
+        the step (−step·(d matrix)·step(error), as in ``linear_jacobian``). Differenced
+        through the whole evaluation instead, each column cost a motion, a torque and
+        an inverted step matrix per segment: most of a fit's time. A point that moves
+        the currents or the torque's own parameters is differenced whole.
+        """
+        lin = self.linearised(p)
+        m = lin.motion
+        here = self._inputs(p)
+        index = self._torque_index
+        inputs = [self._inputs(x) for x in points]
+        mirrored = [self._inputs(2.0 * p - x) for x in points]
+        whole = [i for i, (x, q) in enumerate(zip(inputs, points, strict=True))
+                 if not (np.array_equal(q[index], p[index]) and np.array_equal(x.i_a, here.i_a)
+                         and np.array_equal(x.i_b, here.i_b)
+                         and np.array_equal(x.modulation, here.modulation))]
+        h = np.asarray(steps, dtype=np.float64)[:, None, None]
+
+        def d(pick: Callable[[_Inputs], NDArray[Any]]) -> NDArray[Any]:
+            out: NDArray[Any] = (np.stack([pick(x) for x in inputs])
+                                 - np.stack([pick(x) for x in mirrored])) / (
+                2.0 * (h if pick(here).ndim == 2 else h[:, :, 0]))
+            return out
+
+        t = m.transfer
+        d_a, d_b = d(lambda x: x.transfer.a), d(lambda x: x.transfer.b)
+        d_c, d_d = d(lambda x: x.transfer.c), d(lambda x: x.transfer.d)
+        d_alpha, d_force = d(lambda x: x.alpha), d(lambda x: x.friction)
+        d_theta = d_a * m.alpha + t.a * d_alpha + d_b * m.friction + t.b * d_force
+        d_ripple = (d_theta @ self.synth).real
+        if here.swing_above is not None:
+            above = here.swing_above
+
+            def swing_above(x: _Inputs) -> NDArray[np.complex128]:
+                return above if x.swing_above is None else x.swing_above
+
+            d_ripple = d_ripple + (d(swing_above) @ self.synth_beyond).real
+        nr = self.rotor_teeth
+        d_te1 = nr * d_ripple - d(lambda x: x.rho)[:, :, None]
+        d_lag = self._slip_change(lin, (lin.slope1 * d_te1).mean(axis=2),
+                                  (lin.bend1 * d_te1).mean(axis=2))
+        d_te = d_te1 + d_lag[:, :, None]
+        d_made = lin.slope * d_te
+        # The chain's response and need with friction linearised (``chain_response``).
+        d_drag = d(lambda x: x.friction_slope)[:, :, None] / self.jw
+        drag = m.friction_slope[:, None] / self.jw
+        d_response = d_a + d_b * drag + t.b * d_drag
+        d_need_response = d_c + d_d * drag + t.d * d_drag
+        d_need = d_c * m.alpha + t.c * d_alpha + d_d * m.friction + t.d * d_force
+        moved_swing = ((d_response * lin.alpha) @ self.synth).real
+        d_step_torque = (nr * self.analysed(lin.bend * d_te * lin.swing
+                                            + lin.slope * moved_swing)
+                         - d_need_response * lin.alpha)
+        d_error = self.analysed(d_made) - d_need
+        factor = self.radius * self.weight
+        harmonic = (d(lambda x: x.sensor) * factor * lin.alpha
+                    + lin.step.apply(d_error - d_step_torque))
+        dc = ((d_made.mean(axis=2) - d(lambda x: x.taken)) * self.dc_weight())
+        prior = self.prior(p)
+        out = np.stack([self._flatten(harmonic[i], dc[i],
+                                      (self.prior(q) - prior) / steps[i])
+                        for i, q in enumerate(points)], axis=1)
+        if whole:
+            base = self.residuals(p)
+            for i in whole:
+                out[:, i] = (self.residuals_near(points[i], p) - base) / steps[i]
+        return out
+
+    def motion_index(self) -> NDArray[np.intp]:
+        """Parameters whose Jacobian columns come through the motion's inputs
+        (``motion_columns``): the nonlinear ones, and the friction levels, which move the
+        load's swing and with it every rotor angle of the grid."""
         out = [self.layout.indices(BlockKind.NONLINEAR)]
         if self.layout.has("friction_coulomb"):
             out.append(np.arange(self.layout.size)[self.layout.slices["friction_coulomb"]])
@@ -1371,13 +1526,13 @@ class Model:
         out: NDArray[np.float64] = 1.0 / (MODEL_FLOOR * self.amp[:, 0])
         return out if self.spec.dc_balance else np.zeros_like(out)
 
-    def drag(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+    def _drag(self, stages: list[_Stage]) -> NDArray[np.float64]:
         """The mean torque the chain's own damping takes at each segment's speed, seen at
         the motor (Kt units): the viscous drag its ripple damping implies."""
         omega = self.obs.omega / self.rotor_teeth  # the rotor's mean speed, rad/s
         total = np.zeros_like(omega)
         speed, gear = omega, 1.0
-        for st in self.stages(p):
+        for st in stages:
             total = total + st.damping * speed * gear
             speed, gear = speed * st.ratio, gear * st.ratio
         return total
@@ -1387,13 +1542,7 @@ class Model:
         """Mean torque made minus mean torque taken (drag, and friction when modelled),
         per segment: at constant speed they must balance."""
         grid = self.torque(p, m) if made is None else made
-        taken = self.drag(p)
-        if self.layout.has("friction_coulomb"):
-            velocity = self.load_velocity(m.alpha)
-            shapes = self.friction_shapes(p, velocity)
-            c = self._p(p, "friction_coulomb")
-            taken = taken + self.gear_ratio * (c[0] * shapes[0] + c[1] * shapes[1]).mean(axis=1)
-        out: NDArray[np.float64] = grid.mean(axis=1) - taken
+        out: NDArray[np.float64] = grid.mean(axis=1) - m.taken
         return out
 
     # ------------------------------------------------------------------ residuals
