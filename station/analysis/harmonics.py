@@ -84,6 +84,29 @@ def _design(angle: NDArray[np.float64], orders: int) -> NDArray[np.float64]:
     return np.column_stack([np.ones_like(angle), np.cos(phase), np.sin(phase)])
 
 
+SEPARABLE = 1e-2
+"""Share of a decay column's norm that must lie outside the steady harmonics' columns for
+it to be fitted beside them. A ring slow enough to look steady over the window, at a
+harmonic's frequency, is that harmonic over the window: fitted anyway, the two split the
+signal into huge opposite parts (a development belt's phasor came out at 3e5 m/s²)."""
+
+
+def _separable(steady: NDArray[np.float64], decay: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The columns of ``decay`` the window can tell from ``steady`` and from each other
+    (``SEPARABLE``), taken in order: over a period or two, a slow ring and its sidebands
+    are together nearly the harmonics themselves, though each alone is not."""
+    q, _ = np.linalg.qr(steady)
+    kept = []
+    for j in range(decay.shape[1]):
+        column = decay[:, j]
+        apart = column - q @ (q.T @ column)
+        size = float(np.linalg.norm(apart))
+        if size > SEPARABLE * float(np.linalg.norm(column)):
+            kept.append(j)
+            q = np.column_stack([q, apart / size])
+    return decay[:, kept]
+
+
 def _decay_design(t: NDArray[np.float64], poles: Sequence[complex]) -> NDArray[np.float64]:
     """Columns e^{σt}·cos ωt and e^{σt}·sin ωt per pole σ + jω (only the first if real)."""
     columns = []
@@ -123,8 +146,8 @@ def demodulate(
     used = int(ok.sum())
     x = _design(angle[ok], fitted)
     if decays:
-        x = np.column_stack([x, _decay_design(
-            (np.flatnonzero(ok) + decay_from).astype(np.float64), decays)])
+        x = np.column_stack([x, _separable(x, _decay_design(
+            (np.flatnonzero(ok) + decay_from).astype(np.float64), decays))])
     if used <= x.shape[1]:
         raise ValueError(f"{used} samples cannot determine {x.shape[1]} coefficients")
     y = signal[ok]

@@ -1622,6 +1622,21 @@ class Model:
         return out
 
     # ------------------------------------------------------------------ physics out
+    def swing_springs(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The magnetic spring per condition as the rotor's swing rides it (Kt units per
+        mechanical rad): the torque's slope averaged over the grid and the segments.
+
+        A transient rings on the spring the motion averages, not on the static one: a
+        rotor swinging ±0.5 electrical rad sees cos of its angle fall by a tenth on average,
+        and its mode sits some 5 % below the one ``modes`` gives at rest.
+        """
+        slope = -np.mean(self.torque_slope(p, self.motion(p)), axis=1) * self.rotor_teeth
+        count = len(self.obs.conditions)
+        total = np.bincount(self.obs.condition, weights=slope, minlength=count)
+        seen = np.bincount(self.obs.condition, minlength=count)
+        out: NDArray[np.float64] = total / np.maximum(seen, 1)
+        return out
+
     def rotor_hz(self, p: NDArray[np.float64], amplitude_A: float,
                  load_angle_rad: float = 0.0) -> float:
         """The rotor's own natural frequency on its magnetic spring at a current."""
@@ -1629,14 +1644,17 @@ class Model:
         return f1 * math.sqrt(max(amplitude_A * math.cos(load_angle_rad), 1e-9))
 
     def modes(self, p: NDArray[np.float64], amplitude_A: float,
-              load_angle_rad: float = 0.0) -> list[tuple[float, float]]:
-        """(frequency Hz, damping ratio) of the chain on its magnetic spring at a current."""
+              load_angle_rad: float = 0.0, spring: float | None = None
+              ) -> list[tuple[float, float]]:
+        """(frequency Hz, damping ratio) of the chain on its magnetic spring at a current,
+        or on ``spring`` (Kt units per mechanical rad: ``swing_springs``) where given."""
         stages = self.stages(p)
         n = len(stages)
         mass = np.diag([st.inertia for st in stages])
         stiff = np.zeros((n, n))
         damp = np.diag([st.damping for st in stages])
-        stiff[0, 0] = self.rotor_teeth * amplitude_A * math.cos(load_angle_rad)
+        stiff[0, 0] = (self.rotor_teeth * amplitude_A * math.cos(load_angle_rad)
+                       if spring is None else spring)
         for i, st in enumerate(stages[:-1]):
             for matrix, coeff in ((stiff, st.spring), (damp, st.spring_damping)):
                 matrix[i, i] += coeff * st.ratio * st.ratio

@@ -167,6 +167,31 @@ def test_a_transient_at_known_poles_is_fitted_out_and_costs_precision() -> None:
     assert np.argmax(growth) == 1 and growth.max() > 1.02  # order 2, at 40 Hz
 
 
+def test_a_ring_the_window_cannot_tell_from_the_harmonics_is_left_out_not_split_from_them(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One period of a mode decaying in seconds, with its sidebands at ± one and two
+    orders: over one period these are together the harmonics times a ramp. Fitted anyway,
+    the two split the signal into huge opposite parts; left out, the phasors stay what the
+    window shows (the ring's own share of it, at most)."""
+    angle = _angle(round(SPP))
+    turn = 2 * math.pi / SPP
+    pole = complex(-1e-3, 2 * math.pi * 37.0 / 1000.0)
+    poles = (pole, *(pole + 1j * k * turn for k in (1, -1, 2, -2)))
+    t = 300.0 + np.arange(angle.size)
+    ring = 0.05 * np.exp(pole.real * t) * np.cos(pole.imag * t)
+    noise = np.random.default_rng(5).normal(0.0, 0.01, angle.size)
+    signal = _signal(angle, CONTENT) + ring + noise
+
+    def worst() -> float:
+        fitted = demodulate(signal, angle, SPP, decays=poles, decay_from=300.0)
+        return max(abs(fitted.h(k) - CONTENT.get(k, 0j)) for k in range(1, DEFAULT_ORDERS + 1))
+
+    assert worst() < 0.2
+    monkeypatch.setattr("station.analysis.harmonics.SEPARABLE", 0.0)
+    assert worst() > 1.0
+
+
 def test_mismatched_shapes_and_too_few_samples_are_refused() -> None:
     angle = _angle(100)
     with pytest.raises(ValueError, match="must match"):

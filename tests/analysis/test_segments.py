@@ -440,11 +440,22 @@ change, against holds of 0.25 s."""
 def _ringing_run(periods: int = 5) -> Run:
     """Trim holds of 5 periods each (too short for the data to judge); after every change
     the chain's mode rings on through the whole hold (the phasors step at once)."""
-    run = _offset_sweep(tau_s=0.0, periods=periods, ring=0.0)
+    return _rung(periods, complex(-1.0 / RING_TAU_S, 2 * math.pi * RING_HZ), 0.3)
+
+
+def _since_change(run: Run) -> NDArray[np.float64]:
+    """Seconds since each sample's hold began."""
     change = np.zeros(run.signal.size)
     for a, b in itertools.pairwise(run.bounds):
         change[a:b] = np.arange(b - a) * PERIOD_S
-    run.signal += 0.3 * np.exp(-change / RING_TAU_S) * np.cos(2 * math.pi * RING_HZ * change)
+    return change
+
+
+def _rung(periods: int, pole: complex, amplitude: float) -> Run:
+    """Trim holds of ``periods`` each, every change ringing a mode at ``pole`` (1/s)."""
+    run = _offset_sweep(tau_s=0.0, periods=periods, ring=0.0)
+    change = _since_change(run)
+    run.signal += amplitude * np.exp(pole.real * change) * np.cos(pole.imag * change)
     return run
 
 
@@ -489,6 +500,29 @@ def test_a_hold_the_data_judge_settled_keeps_the_datas_judgement() -> None:
     assert [(s.settling, s.ringing) for s in segments] == [(Settling.DATA, ())] * 5
 
 
+def test_a_hold_too_short_for_a_fast_decay_waits_as_long_as_it_can() -> None:
+    """The same holds and a ring ten times stronger, decaying in 50 ms: the model's plain
+    wait (0.28 s) fits the hold, and the ring's strength asks for more than the hold has;
+    waiting until three periods are left takes it down further than twelve periods from
+    the data's judgement average it."""
+    pole = complex(-1.0 / 0.05, 2 * math.pi * RING_HZ)
+    run = _rung(12, pole, 3.0)
+
+    def decay(amplitude_mA: int, electrical_hz: float) -> ChainDecay:
+        return ChainDecay((pole,), math.log(300.0), 0.02, 1e-4)
+
+    data, _ = steady_segments(run.timeline(), run.signal)
+    segments, _ = steady_segments(run.timeline(), run.signal, settle_fallback=decay)
+    waited = [s for s in segments if s.settling is Settling.MODEL]
+    assert waited and all(s.periods == MIN_PERIODS for s in waited)
+
+    def bias(seg: Segment) -> float:
+        h = demodulate(run.signal[seg.start:seg.stop], seg.electrical_angle(), SPP)
+        return abs(h.h(2) - h2_of(_as_tuple(seg.trims)))
+
+    assert max(bias(s) for s in segments) < max(bias(s) for s in data)
+
+
 @pytest.mark.parametrize(("floor_s", "settling"), [(0.2, Settling.MODEL), (0.3, Settling.DATA)])
 def test_a_wait_with_no_mode_to_fit_out_is_kept_only_if_the_hold_has_room_for_it(
     floor_s: float, settling: Settling,
@@ -504,6 +538,61 @@ def test_a_wait_with_no_mode_to_fit_out_is_kept_only_if_the_hold_has_room_for_it
     assert rejected == []
     assert [s.settling for s in segments][1:] == [settling]
     assert segments[1].periods == (4 if settling is Settling.MODEL else 8)
+
+
+def test_a_change_that_rings_hard_is_waited_out_down_to_the_harmonics_resolution() -> None:
+    """The same 0.3 m/s² ringing, seen from a decay that resolves 1e-4 m/s²: 1/300 of it is
+    still ten times that, so the hold waits for ln(0.3/1e-4) e-foldings (as far as the
+    hold allows), not ln(300); with a coarse resolution nothing changes."""
+    pole = complex(-1.0 / 0.05, 2 * math.pi * RING_HZ)
+    run = _rung(40, pole, 0.3)
+
+    def waits(resolution: float) -> list[float]:
+        def decay(amplitude_mA: int, electrical_hz: float) -> ChainDecay:
+            return ChainDecay((pole,), math.log(300.0), 0.02, resolution)
+        segments, _ = steady_segments(run.timeline(), run.signal, settle_fallback=decay)
+        return [(s.start - s.held_from) * PERIOD_S for s in segments]
+
+    plain = math.log(300.0) * 0.05
+    # Sharp enough to see the ringing in a hold's first period: waited out further.
+    assert all(w >= math.log(0.3 / 1e-4) * 0.05 - PERIOD_S * SPP for w in waits(1e-4)[1:])
+    # Coarse: the plain e-foldings, or the data's own judgement where it is later.
+    assert all(w >= plain - PERIOD_S for w in waits(1.0))
+    assert sum(waits(1e-4)) > sum(waits(1.0))
+
+
+def test_kicked_decay_counts_e_foldings_down_to_the_resolution_and_never_fewer() -> None:
+    pole = complex(-10.0, 300.0)
+    decay = ChainDecay((pole,), math.log(300.0), 0.02, 0.01)
+    assert decay.kicked(100.0).e_foldings == pytest.approx(math.log(1e4))
+    assert decay.kicked(1.0).e_foldings == pytest.approx(math.log(300.0))
+    assert decay.kicked(0.0) is decay
+    assert ChainDecay((pole,), 2.0, 0.02).kicked(1e6).e_foldings == 2.0
+    assert decay.slowest_decay_per_s() == pytest.approx(10.0)
+
+
+def test_a_ringing_modulated_by_the_electrical_angle_is_fitted_out_with_its_sidebands(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A rotor whose spring swings with the electrical angle rings at the mode and beside it
+    at ± the electrical frequency: fitted at the mode alone, orders 1 and 2 are biased; with
+    the sidebands, not."""
+    run = _ringing_run()
+    change = _since_change(run)
+    angle = 2 * math.pi * change / (SPP * PERIOD_S)
+    envelope = 0.3 * np.exp(-change / RING_TAU_S)
+    run.signal += envelope * np.cos(2 * math.pi * RING_HZ * change + angle + 0.7)
+    segments, _ = steady_segments(run.timeline(), run.signal, settle_fallback=_belt_decay)
+    sigma = NOISE * math.sqrt(2 / 200)
+
+    def worst() -> float:
+        return max(abs(seg.harmonics(run.signal[seg.start:seg.stop], orders=8).h(k)
+                       - (h1_of, h2_of)[k - 1](_as_tuple(seg.trims)))
+                   for seg in segments for k in (1, 2))
+
+    assert worst() < 4 * sigma
+    monkeypatch.setattr("station.analysis.segments.SIDEBANDS", ())
+    assert worst() > 10 * sigma
 
 
 def test_a_chain_decay_waits_for_every_mode_when_the_hold_allows_it() -> None:

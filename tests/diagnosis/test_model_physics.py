@@ -16,8 +16,10 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
+from station.analysis import segments
 from station.analysis.harmonics import demodulate
 from station.analysis.pipeline import tangential_signal
+from station.analysis.segments import ChainDecay
 from station.core import Effect
 from station.diagnosis import diagnose, observations
 from station.diagnosis.diagnose import (
@@ -400,10 +402,11 @@ def test_a_group_must_gain_beyond_what_it_leaves_in_the_cells_where_it_gains() -
     what it still leaves in each cell it is far below them; a real reluctance spring
     (seed 24) leaves noise where it gains, and its gain counts almost whole. (Since every
     residual carries the measurement's own noise, ``Step``, the detent no longer gains
-    held out either: the cells' test is no longer its only guard.)"""
+    held out either; and since each change's ringing is waited out down to the harmonics'
+    resolution, the mode's cells are nearer the noise and its in-sample gain fell from
+    above the whole recording's thresholds to 10 of 28: the cells' test is one guard of
+    several, and must still hold.)"""
     spurious = _added(Case(TrialClass(), 61), Effect.DETENT_TORQUE)
-    threshold = max(spurious.f_threshold, spurious.bic_threshold)
-    assert spurious.chi2_gain > threshold
     assert spurious.cell_chi2_gain < 0.6 * spurious.cell_threshold
     assert not spurious.significant
     real = _added(Case(TrialClass(frozenset({Effect.RELUCTANCE_TORQUE})), 24),
@@ -756,3 +759,57 @@ def test_a_clean_units_noise_gives_no_group_that_reshapes_the_spring_a_gain() ->
     nominal = _case_nominal(Case(TrialClass(frozenset()), 204))  # development seed 204
     for effect in (Effect.MAGNETIC_SATURATION, Effect.RELUCTANCE_TORQUE):
         assert nominal.balanced.chi2 - _with(nominal, effect).chi2 < 9.2, effect
+
+
+def _held_per_value(timeline: Timeline) -> float:
+    with threadpool_limits(limits=1, user_api="blas"):
+        _, nominal = nominal_of(timeline)
+        held = held_out(nominal.balanced)
+    return held.total / held.residuals.size
+
+
+def test_a_rough_disks_trim_steps_are_waited_out_until_their_ringing_is_below_the_noise(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Development disk none@208 swings at up to 15 m/s² and each trim step rings its
+    47 Hz mode at some 3 m/s². After ln(300) e-foldings that ring is still ten times the
+    noise of the harmonics: one hold alone left 40 % of the nominal χ², and the clean unit
+    a mismatch (held-out χ² 1.94 per value). Waited out down to the harmonics' resolution,
+    the unit is described to the noise."""
+    timeline, _ = _clean(208)
+    assert _held_per_value(timeline) < 1.25
+    monkeypatch.setattr(ChainDecay, "kicked", lambda self, kick: self)
+    assert _held_per_value(timeline) > 1.5
+
+
+def test_a_chain_the_grid_missed_is_found_again_from_the_torque_balance() -> None:
+    """Seed 362477267 (a benchmark seed, where this was found): a clean disk swinging at
+    up to 130 m/s². Its grid's best start polished into a 58 Hz rotor with its load
+    angles on their bounds (χ² 1.5 million); only the fit with the torque balance found
+    the 74 Hz chain (χ² 3217). The free fit, the floor's weights and every segment's
+    settling are then taken again from there: the clean unit is described to the noise,
+    where it was left at 2.53 per value."""
+    timeline, _ = _clean(362477267)
+    with threadpool_limits(limits=1, user_api="blas"):
+        _, nominal = nominal_of(timeline)
+    free, balanced = nominal.free, nominal.balanced
+    assert free.scalar("log_rotor_hz") == pytest.approx(balanced.scalar("log_rotor_hz"),
+                                                         abs=0.01)
+    held = held_out(balanced)
+    assert held.total / held.residuals.size < 1.25
+
+
+def test_a_ringing_rotor_whose_spring_swings_with_the_angle_is_fitted_out_with_its_sidebands(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Seed 22660216 (a benchmark seed, where this was found): a clean disk damped at
+    ζ 0.03 whose mode (55 and 65 Hz at its two currents) sits on orders 4 and 5 of its
+    13.5 Hz holds, too short to wait for. Offsets of 60-190 mA make its spring swing with
+    the electrical angle, so the transient rings beside the mode at ± the electrical
+    frequency too; fitted at the mode alone, that was left at the neighbouring orders
+    (held-out χ² 3.45 per value, 1.59 with the sidebands; 5.01 before this and the
+    spring the swing averages); still above the noise."""
+    timeline, _ = _clean(22660216)
+    assert _held_per_value(timeline) < 2.0
+    monkeypatch.setattr(segments, "SIDEBANDS", ())
+    assert _held_per_value(timeline) > 3.0
