@@ -480,12 +480,12 @@ def steady_segments(
                     available_s = (b - hold.start) * period_s
                     needed_s = shortest * spp * period_s
                     wait_s, ringing = decay.plan(available_s, needed_s)
-                    if not ringing:
-                        wait_s = max(wait_s, min(longest, available_s - needed_s))
                     if not too_short and not ringing:
                         # The model sees nothing slow where the data do: trust the data.
                         rejected.append(Rejected(a, b, "the rotor did not settle within the hold"))
                         continue
+                    if not ringing:
+                        wait_s = max(wait_s, min(longest, available_s - needed_s))
                     # The transient runs from the hold's change, not from the steady stretch.
                     skip = max(0.0, wait_s / period_s - (a - hold.start))
                     settling = Settling.RINGING if ringing else Settling.MODEL

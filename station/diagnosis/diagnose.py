@@ -158,7 +158,7 @@ SETTLE_PASSES = 3
 fit sees only the holds that judge their own settling; the chain fitted on the segments it
 settled can settle them better in turn (development disk none@22660216, a mode on orders 4
 and 5 of holds too short to wait for: held-out χ² 1.94 per value after one pass, 1.24
-after two)."""
+after two, measured with waits cut to three periods that were later reverted)."""
 
 SETTLE_E_FOLDINGS = math.log(300.0)
 """A transient is taken as gone when it has decayed to 1/300 of its start."""
@@ -709,20 +709,19 @@ def settle_fallback(nominal: Fit) -> SettleFallback:
     """
     model = nominal.model
     rho = nominal.value("load_angle_rad")
-    angles = {(c.amplitude_mA, round(c.electrical_hz, 1)): float(r)
-              for c, r in zip(model.obs.conditions, rho, strict=True)}
-    # The spring each condition's swing rides (a rough unit's is softer than at rest).
-    springs = {(c.amplitude_mA, round(c.electrical_hz, 1)): float(k)
-               for c, k in zip(model.obs.conditions, model.swing_springs(nominal.params),
-                               strict=True)}
+    # Each condition's load angle, and the spring its swing rides (a rough unit's is softer
+    # than at rest).
+    conditions = {(c.amplitude_mA, round(c.electrical_hz, 1)): (float(r), float(k))
+                  for c, r, k in zip(model.obs.conditions, rho,
+                                     model.swing_springs(nominal.params), strict=True)}
     top = 2.0 * model.obs.orders * float(np.max(np.abs(model.obs.omega))) / (2 * math.pi)
     # What a segment's harmonics resolve: a transient below it is not worth waiting out.
     resolution = float(np.median(model.obs.noise))
 
     def settle(amplitude_mA: int, electrical_hz: float) -> ChainDecay | None:
-        key = (amplitude_mA, round(electrical_hz, 1))
+        angle, spring = conditions.get((amplitude_mA, round(electrical_hz, 1)), (0.0, None))
         modes = [(f, z) for f, z in model.modes(nominal.params, amplitude_mA / 1000.0,
-                                                angles.get(key, 0.0), springs.get(key))
+                                                angle, spring)
                  if 0 < f <= top]
         if not modes:
             return _prior_settle(amplitude_mA, electrical_hz)
