@@ -664,10 +664,12 @@ def test_every_column_of_the_jacobian_is_what_the_residuals_themselves_change_by
             for i in range(p.size):
                 # The differences are no exact reference at any one step: at 1e-5 a sharp
                 # mode's curvature speaks (the rotor's frequency 3.6e-4 off), at 1e-6 the
-                # rounding the step matrix magnifies near a mode (a smoothing's 2.6e-4 off).
-                # A column must agree with one of them.
+                # rounding the step matrix magnifies near a mode (a smoothing's 2.6e-4 off),
+                # and near a fold of the spring, where a column's norm reached 1.7e10, the
+                # curvature at 1e-6 too (the rotor's damping 1.6e-2 off at 1e-5, 1.6e-4 at
+                # 1e-6: falling as the step squared). A column must agree with one of them.
                 errors, norms = [], []
-                for h in (1e-5, 1e-6):
+                for h in (1e-5, 1e-6, 1e-7):
                     step = h * max(1.0, abs(p[i]), 1e-2 * ranges[i])  # as ``fit.jacobian``
                     up, down = p.copy(), p.copy()
                     up[i] += step
@@ -675,11 +677,13 @@ def test_every_column_of_the_jacobian_is_what_the_residuals_themselves_change_by
                     column = (model.residuals(up) - model.residuals(down)) / (2.0 * step)
                     errors.append(float(np.linalg.norm(analytic[:, i] - column)))
                     norms.append(float(np.linalg.norm(column)))
-                # The gain errors' design column alone was 3.5e-3 off, the offsets' 1e-2, a
-                # clock's drift differenced by 1e-6 ppm 2.4e-4 (its phases round). A
-                # column near zero is held to 1e-6: a saturated friction's smoothing (7e-7)
-                # differenced to 4e-7.
-                assert min(errors) <= 1e-4 * max(*norms, 1e-2), names[i]
+                    # The gain errors' design column alone was 3.5e-3 off, the offsets'
+                    # 1e-2, a clock's drift differenced by 1e-6 ppm 2.4e-4 (its phases
+                    # round). A column near zero is held to 1e-6: a saturated friction's
+                    # smoothing (7e-7) differenced to 4e-7.
+                    if min(errors) <= 1e-4 * max(*norms, 1e-2):
+                        break
+                assert min(errors) <= 1e-4 * max(*norms, 1e-2), (names[i], errors, norms)
 
 
 class _Fresh(Model):
