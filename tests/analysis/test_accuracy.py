@@ -196,8 +196,10 @@ def test_default_method_finds_the_optimal_trims(bench: Bench, unit: Unit) -> Non
     )
     assert abs(d_ga) <= gain_tolerance and abs(d_gb) <= gain_tolerance, (d_ga, d_gb, rec.effects)
     # Every steady hold of the schedule is a trim point (baseline plus 3 sweeps of 11),
-    # except a few at the sweeps' ends that shake and clip too much to settle.
-    assert 1 + 3 * 11 - 4 <= analysis.segments_used <= 1 + 3 * 11
+    # except a few at the sweeps' ends that shake and clip too much to settle. How many
+    # is not fixed: SN3101 recorded nine times with the same seed, differing only in the
+    # virtual bus's timing, used 29 to 33 (issue 19: recordings that depend on timing).
+    assert 1 + 3 * 11 - 6 <= analysis.segments_used <= 1 + 3 * 11
 
 
 @pytest.mark.parametrize("unit", UNITS, ids=[u.label for u in UNITS])
