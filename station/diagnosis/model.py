@@ -1123,21 +1123,10 @@ class Model:
         out: NDArray[np.float64] = slope
         return out
 
-    def sensitivity(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.complex128]:
-        """d(error)/d(α) per order alone: the model's own magnetic spring at its mean over
-        the period on the rotor's swing, minus the chain's need (friction linearised
-        about its mean slope). The diagonal of ``step``'s derivative: how much the chain
-        magnifies a torque error (``magnification``).
-        """
-        stiff = (np.mean(self.torque_slope(p, m), axis=1) * self.rotor_teeth)[:, None]
-        theta, need = self.chain_response(m)
-        out: NDArray[np.complex128] = stiff * theta - need
-        return out
-
     def chain_response(self, m: Motion) -> tuple[NDArray[np.complex128],
                                                   NDArray[np.complex128]]:
         """Rotor angle and torque needed per unit of the load's acceleration, (S, K) each,
-        friction linearised about its mean slope: what ``sensitivity`` and ``step``
+        friction linearised about its mean slope: what ``step`` and ``magnification``
         put the spring against."""
         t = m.transfer
         drag = m.friction_slope[:, None] / self.jw
@@ -1167,7 +1156,7 @@ class Model:
 
         The rotor's swing δθ_j at order j meets the slope's harmonics s_h on the grid:
         δ(torque)_k = Nr·Σ_j (s_{k−j}·δθ_j + s_{k+j}·conj δθ_j); the chain's need stays
-        per order (friction linearised about its mean slope, as in ``sensitivity``).
+        per order (friction linearised about its mean slope, ``chain_response``).
         """
         k = self.obs.orders
         s = self.torque_slope(p, m) @ self.slope_analyse  # s_h, h = 0 … 2K, (S, 2K + 1)

@@ -60,6 +60,7 @@ from station.diagnosis.model import (
     ChainKind,
     Model,
     ModelSpec,
+    Motion,
     chain_for,
     saturation_shapes,
     saturation_slopes,
@@ -822,7 +823,7 @@ def test_a_ringing_rotor_whose_spring_swings_with_the_angle_is_fitted_out_with_i
 def test_the_floor_of_an_order_that_rides_alone_is_its_own_magnification() -> None:
     """With no order coupled to another (the derivative each order's own spring against
     its own need), the floor carried through the whole derivative is each order's own
-    magnification: its torque balance over its sensitivity, as it was before coupling."""
+    magnification: its torque balance over its own spring less its need, as before."""
     timeline, _ = _clean(204)
     with threadpool_limits(limits=1, user_api="blas"):
         obs, nominal = nominal_of(timeline)
@@ -830,8 +831,14 @@ def test_the_floor_of_an_order_that_rides_alone_is_its_own_magnification() -> No
     model, p = Model(fitted.model.spec, obs), fitted.params
     k = obs.orders
 
-    def alone(self: Model, q: np.ndarray, m: object) -> np.ndarray:
-        sens = self.sensitivity(q, m)  # type: ignore[arg-type]
+    def own_spring(self: Model, q: np.ndarray, m: Motion) -> np.ndarray:
+        """d(error)/d(α) of each order alone: its spring at the period's mean less its need."""
+        theta, need = self.chain_response(m)
+        out: np.ndarray = -self.segment_springs(q, m)[:, None] * theta - need
+        return out
+
+    def alone(self: Model, q: np.ndarray, m: Motion) -> np.ndarray:
+        sens = own_spring(self, q, m)
         matrix = np.zeros((obs.count, 2 * k, 2 * k))
         index = np.arange(k)
         matrix[:, index, index] = matrix[:, index + k, index + k] = sens.real
@@ -844,7 +851,7 @@ def test_the_floor_of_an_order_that_rides_alone_is_its_own_magnification() -> No
     m = own.motion(p)
     theta, need = own.chain_response(m)
     spring = np.abs(own.segment_springs(p, m)[:, None] * theta)
-    expected = np.maximum((spring + np.abs(need)) / np.abs(own.sensitivity(p, m)), 1.0)
+    expected = np.maximum((spring + np.abs(need)) / np.abs(own_spring(own, p, m)), 1.0)
     assert own.magnification(p) == pytest.approx(expected, rel=1e-6)
     assert np.max(model.magnification(p) / expected) > 1.0 + 1e-3  # coupling is there
 
