@@ -46,7 +46,7 @@ def _starts_lag(model: Model, p: NDArray[np.float64]) -> list[Starts]:
 
 
 def _starts_friction(model: Model, p: NDArray[np.float64]) -> list[Starts]:
-    return [{"log_friction_smoothing": [math.log(eps)]} for eps in (0.005, 0.05, 0.25)]
+    return [{"log_friction_smoothing": [math.log(eps)]} for eps in (0.005, 0.02, 0.08)]
 
 
 DELAY_PROBE_S = 1e-5

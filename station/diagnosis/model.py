@@ -117,8 +117,9 @@ class Block:
     kind: BlockKind = BlockKind.NONLINEAR
     rejects: tuple[int, ...] = ()
     """Bounds (−1 low, +1 high) a fit may not rest on and still be the group's physics:
-    a Coulomb friction smoothed past the slowest speed is a drag, a clock 5000 ppm off
-    or a current loop twenty periods late is something else the group stands in for."""
+    a clock 5000 ppm off or a current loop twenty periods late is something else the
+    group stands in for. (Friction's smoothing has none: its ceiling is still Coulomb
+    friction, ``FRICTION_SMOOTHING_MAX``.)"""
 
 
 @dataclass
@@ -343,15 +344,18 @@ def _blocks_lag(spec: ModelSpec, obs: Observations) -> list[Block]:
     return [Block("current_lag_ms", 2, 0.5 * t_ms, 0.0, 20.0 * t_ms, rejects=(1,))]
 
 
-FRICTION_SMOOTHING_MAX = 0.3
+FRICTION_SMOOTHING_MAX = 0.1
 """Coulomb friction's smoothing, at most this fraction of the slowest mean load speed.
 
-Coulomb friction is a torque that does not change with speed once the load moves: its
-smoothed sign must have settled at every hold. A tanh still rising at the slowest
-hold is a drag that grows with speed and adds ripple damping at low speeds, which any
-chain the nominal model got slightly wrong can use (a clean belt unit was named
-friction at 0.8 % of holding torque, smoothed over half its top speed), while true
-friction fits smoothings of a few percent of the slowest speed."""
+Coulomb friction is a torque that does not change with speed once the load moves. At this
+ceiling its smoothed sign has settled at every hold (tanh 10), so the group cannot be a
+drag that grows with speed and damps the ripple at low speeds, which any chain the
+nominal model got slightly wrong could use (a clean belt unit was named friction at
+0.8 % of holding torque, smoothed over half its top speed). Below it the smoothing shows
+only where the load's swing nearly stops it; where it never does, the data do not fix
+it, and a fit resting on the ceiling is friction like any other (a belt with Coulomb
+friction of 19 % of its holding torque fitted the ceiling and explained 6370 of the
+nominal's held-out χ² of 8546)."""
 
 
 def _blocks_friction(spec: ModelSpec, obs: Observations) -> list[Block]:
@@ -360,7 +364,7 @@ def _blocks_friction(spec: ModelSpec, obs: Observations) -> list[Block]:
         # Coulomb levels (Kt units, at the load) forward and reverse: never negative.
         Block("friction_coulomb", 2, 0.0, 0.0, 5.0, BlockKind.LINEAR),
         Block("log_friction_smoothing", 1, _log(0.05), _log(1e-4),
-              _log(FRICTION_SMOOTHING_MAX), rejects=(1,)),
+              _log(FRICTION_SMOOTHING_MAX)),
     ]
 
 
