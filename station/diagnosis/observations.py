@@ -183,6 +183,14 @@ class Observations:
         out: NDArray[np.float64] = self.omega / meta.rotor_teeth * meta.gear_ratio
         return out
 
+    def turning(self, per_revolution: int) -> Observations:
+        """The same observations with the rotor's mechanical angle taken ``per_revolution``
+        times over: a once-per-revolution group fitted on them is tied to angles that are
+        not the rotor's (``diagnose.wrong_angle_chi2``)."""
+        teeth = self.metadata.rotor_teeth
+        return replace(self, mechanical=np.array(
+            [mechanical_phasor(s, teeth, per_revolution) for s in self.segments]))
+
     def with_floor(self, magnification: NDArray[np.float64]) -> Observations:
         """The same observations with the model floor scaled per phasor by how much the
         chain magnifies a torque error into acceleration there (1 far from any mode)."""
@@ -226,8 +234,9 @@ class Observations:
         )
 
 
-def mechanical_phasor(segment: Segment, rotor_teeth: int) -> complex:
-    """Mean of e^{jθ} over a segment, θ the mechanical angle of the position demand.
+def mechanical_phasor(segment: Segment, rotor_teeth: int, per_revolution: int = 1) -> complex:
+    """Mean of e^{jnθ} over a segment, θ the mechanical angle of the position demand and
+    n ``per_revolution``.
 
     One mechanical revolution is 4·m·Nr microsteps; within a segment the demand is
     a line, so the mean of the phasor is its value at mid-segment times a sinc.
@@ -235,7 +244,7 @@ def mechanical_phasor(segment: Segment, rotor_teeth: int) -> complex:
     per_rev = 4.0 * segment.microsteps_per_fullstep * rotor_teeth
     n = np.linspace(0.0, segment.samples, _MECHANICAL_SAMPLES)
     theta = 2.0 * math.pi * (segment.position0 + segment.microsteps_per_sample * n) / per_rev
-    return complex(np.mean(np.exp(1j * theta)))
+    return complex(np.mean(np.exp(1j * per_revolution * theta)))
 
 
 def _refuse_unless_characterization(segments: list[Segment], sync_period_s: float,

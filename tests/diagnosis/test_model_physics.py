@@ -29,6 +29,7 @@ from station.diagnosis.diagnose import (
     Nominal,
     Search,
     _transplant,
+    candidate_of,
     compare,
     explains_the_rest,
     fit_nominal,
@@ -256,6 +257,38 @@ def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() ->
     assert plant < 0.97, "the development trial must saturate visibly"
     sigma = fitted["sigma_percent"] / 100.0
     assert abs(measured - plant) < 4.0 * sigma, (measured, plant, sigma)
+
+
+def _beside(case: Case, first: Effect, second: Effect) -> Test:
+    """The case's model with ``first``'s group, tested against the same with ``second``'s
+    beside it (each judged as the search judges it)."""
+    nominal = _case_nominal(case)
+    smaller = _with(nominal, first)
+    obs, chi2 = smaller.model.obs, nominal.balanced.chi2
+    with threadpool_limits(limits=1, user_api="blas"):
+        larger = fit_spec(obs, replace(smaller.model.spec, effects=frozenset({first, second})),
+                          smaller, nominal.free)
+        return compare(candidate_of(obs, chi2, smaller), candidate_of(obs, chi2, larger))
+
+
+def test_an_eccentric_rotor_beside_strong_flux_harmonics_is_judged_against_wrong_angles(
+) -> None:
+    """An eccentric rotor modulates a strong flux ripple by a few percent, far less than the
+    share of the flux's χ² that the flux group's own errors may leave. Those errors do not
+    follow where the rotor stands in its revolution, so the eccentricity is judged against
+    itself fitted at twice and three times that angle instead, and counts, at the plant's
+    size. On the twin with the flux alone it gains nothing at any angle."""
+    flux, eccentric = Effect.FLUX_HARMONICS, Effect.ROTOR_ECCENTRICITY
+    both = Case(TrialClass(frozenset({flux, eccentric})), 204)
+    test = _beside(both, flux, eccentric)
+    assert test.model_error < 0.1 * MODEL_ERROR_SHARE * test.smaller.explained
+    assert test.significant
+    fitted = abs(complex(*test.larger.fit.value("eccentricity")))
+    plant = plan_trial(both).unit.motor.eccentricity
+    assert plant is not None
+    assert fitted == pytest.approx(plant.relative, rel=0.2)
+    twin = _beside(Case(TrialClass(frozenset({flux})), 204), flux, eccentric)
+    assert not twin.significant
 
 
 def test_coulomb_friction_has_settled_at_every_hold_so_it_is_never_a_drag() -> None:
