@@ -8,6 +8,7 @@ benchmark judge that) but whether the model can describe the physics at all.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from typing import TYPE_CHECKING
@@ -291,6 +292,13 @@ def test_an_eccentric_rotor_beside_strong_flux_harmonics_is_judged_against_wrong
     assert not twin.significant
 
 
+@functools.cache
+def _concealed_friction() -> Test:
+    """Friction concealed in a belt unit (seed 26), its group added: fitted once for the
+    two tests of the smoothing's ceiling."""
+    return _added(Case(TrialClass(frozenset({Effect.FRICTION})), 26), Effect.FRICTION)
+
+
 def test_coulomb_friction_has_settled_at_every_hold_so_it_is_never_a_drag() -> None:
     """The group's smoothing may reach at most a tenth of the slowest mean load speed:
     there its torque no longer follows the load's swing, so it cannot be a drag rising
@@ -309,7 +317,7 @@ def test_coulomb_friction_has_settled_at_every_hold_so_it_is_never_a_drag() -> N
     # (At a ceiling of 0.3 the slope times the speed was 0.03: a drag.)
     assert np.ptp(forward) < 1e-4
     assert np.max(np.abs(slope)) * slowest < 1e-4
-    concealed = _added(Case(TrialClass(frozenset({Effect.FRICTION})), 26), Effect.FRICTION)
+    concealed = _concealed_friction()
     assert concealed.significant
 
 
@@ -319,7 +327,7 @@ def test_coulomb_friction_resting_on_its_smoothing_ceiling_still_counts() -> Non
     (A benchmark belt with friction of 19 % of its holding torque fitted the ceiling,
     explained 6370 of its nominal held-out χ² of 8546, and was named nothing while such a
     fit did not count.)"""
-    concealed = _added(Case(TrialClass(frozenset({Effect.FRICTION})), 26), Effect.FRICTION)
+    concealed = _concealed_friction()
     fitted = concealed.larger.fit
     active = fitted.active.copy()
     active[fitted.model.layout.slices["log_friction_smoothing"]] = 1
