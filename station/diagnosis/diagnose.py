@@ -61,7 +61,14 @@ from threadpoolctl import threadpool_limits
 from station.analysis.segments import ChainDecay, SettleFallback
 from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, Effect
-from station.diagnosis.axes import AxisCoupling, axis_couplings, with_axes_checked
+from station.diagnosis.axes import (
+    AxisCoupling,
+    ElementTurn,
+    axis_couplings,
+    element_turn,
+    turned_back,
+    with_axes_checked,
+)
 from station.diagnosis.fit import (
     SCREEN_HELD,
     TOURNAMENT_NFEV,
@@ -1429,17 +1436,18 @@ def _observe(timeline: Timeline) -> Observations:
 
 
 def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None,
-               run: Mapper = map, first: Observations | None = None
+               run: Mapper = map, read: Aligned | None = None
                ) -> tuple[Observations, Nominal]:
     """The recording's observations and its nominal fit, as the diagnosis first takes them
     (``fit.before`` unless a chosen model's modes weight it again): fitted to a unit's
-    clean twin, what an effect adds to. ``first``: the observations before the fitted
-    chain settles any segment, when already taken (``first_observations``)."""
+    clean twin, what an effect adds to. ``read``: the recording as ``aligned`` read it,
+    when already read (then ``timeline`` is not read again)."""
     with threadpool_limits(limits=1, user_api="blas"):
         if progress is not None:
             progress("fitting the nominal model")
-        if first is None:
-            first = first_observations(timeline)
+        if read is None:
+            read = aligned(timeline)
+        timeline, first = read.timeline, read.first
         fits = fit_nominal(first, run=run)
         obs, seen = first, [first.segments]
         for _ in range(SETTLE_PASSES):
@@ -1456,10 +1464,27 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
         return obs, fits
 
 
-def first_observations(timeline: Timeline) -> Observations:
-    """The observations before the fitted chain settles any segment: where a recording
-    that is not a characterization is refused."""
-    return with_axes_checked(_observe(timeline))
+@dataclass(frozen=True)
+class Aligned:
+    """A recording as the diagnosis reads it: turned back when its sensing element was
+    turned on its mount (``turn``, measured on the recording as it came), and its
+    observations before the fitted chain settles any segment (``first``)."""
+
+    timeline: Timeline
+    first: Observations
+    turn: ElementTurn | None
+
+
+def aligned(timeline: Timeline, *, turn_back: bool = True) -> Aligned:
+    """The recording read, its element turned back if it shows a turn (unless not to
+    ``turn_back``: the recording as it came); where a recording that is not a
+    characterization is refused."""
+    obs = _observe(timeline)
+    turn = element_turn(obs) if turn_back else None
+    if turn is not None:
+        timeline = turned_back(timeline, turn)
+        obs = _observe(timeline)
+    return Aligned(timeline, with_axes_checked(obs), turn)
 
 
 def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None,
@@ -1468,10 +1493,11 @@ def diagnose(timeline: Timeline, progress: Callable[[str], None] | None = None,
     search's models are fitted side by side in that many processes (the same answer).
     A recording the diagnosis refuses is refused before any worker starts."""
     with threadpool_limits(limits=1, user_api="blas"):
-        first = first_observations(timeline)
+        read = aligned(timeline)
     with _search_pool(workers) as pool:
-        obs, fits = nominal_of(timeline, progress, map if pool is None else pool.map, first)
-        return diagnose_observations(obs, progress, nominal=fits, pool=pool)
+        obs, fits = nominal_of(read.timeline, progress, map if pool is None else pool.map,
+                               read)
+        return diagnose_observations(obs, progress, nominal=fits, pool=pool, turn=read.turn)
 
 
 @contextlib.contextmanager
@@ -1521,7 +1547,8 @@ def _reweighted(nominal: Nominal, chosen: Candidate, run: Mapper = map) -> Nomin
 
 def diagnose_observations(obs: Observations, progress: Callable[[str], None] | None = None,
                           *, nominal: Nominal | None = None,
-                          pool: Executor | None = None) -> Diagnosis:
+                          pool: Executor | None = None,
+                          turn: ElementTurn | None = None) -> Diagnosis:
     with threadpool_limits(limits=1, user_api="blas"):
         if nominal is None:
             obs = with_axes_checked(obs)
@@ -1558,6 +1585,12 @@ def diagnose_observations(obs: Observations, progress: Callable[[str], None] | N
                                         LocatedKind.UNEXPLAINED)
         if extended.spec.sensor_bend:
             findings.append(bend_finding(extended, search.get(extended.effects)))
+        if turn is not None:
+            findings.append(Finding(turn.finding(), f"sensor_{turn.coupling.axis.value}_axis",
+                                    values={"turn_deg": turn.coupling.turn_deg,
+                                            "in_phase_share": turn.coupling.coupling,
+                                            "in_phase_share_sigma": turn.coupling.sigma}))
+            located += locate_axis(turn.coupling, turn.conditions)
         axes = axis_couplings(obs)
         for coupled in (a for a in axes if a.significant):
             findings.append(Finding(coupled.finding(), f"sensor_{coupled.axis.value}_axis",
