@@ -930,3 +930,49 @@ def test_a_segment_near_its_springs_fold_is_uncertain_at_every_order_its_swing_r
     per_condition = held.chi2 / np.bincount(conditions[conditions >= 0])
     assert held.total / held.residuals.size < 1.25
     assert float(np.max(per_condition)) < 3.0
+
+
+def test_the_noise_leaves_its_own_share_of_a_strong_ripples_values_not_one_each() -> None:
+    """σ carries the model floor where the ripple is strong, so the noise leaves less than
+    one per value there: a clean belt's held-out χ² is near what its noise leaves
+    (``Model.noise_chi2``), far below one per value."""
+    base = _case_nominal(Case(TrialClass(frozenset()), 41)).balanced
+    held = held_out(base)
+    values = held.residuals.size
+    noise = base.model.noise_chi2(values)
+    assert noise < 0.9 * values
+    assert abs(held.total - noise) < 0.5 * abs(held.total - values), (held.total, noise, values)
+
+
+def test_a_loop_lag_beside_a_strong_current_distortion_is_named_when_it_leaves_the_noise(
+) -> None:
+    """The distortion takes so much that the share its own errors may leave
+    (``MODEL_ERROR_SHARE``) is far above anything the lag gains; but what the distortion
+    leaves held out is near the noise, and the lag takes it below: there are no errors of
+    the distortion left for a group to soak up. Counted one per value, the noise seemed to
+    leave more than the distortion did, and the lag was never named (development pair
+    current_distortion+current_loop_lag@204)."""
+    both = frozenset({Effect.CURRENT_DISTORTION, Effect.CURRENT_LOOP_LAG})
+    case = Case(TrialClass(both), 204)
+    nominal = _case_nominal(case)
+    base = nominal.balanced
+    with threadpool_limits(limits=1, user_api="blas"):
+        search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
+                        nominal.free, None)
+        distortion = search.get(frozenset({Effect.CURRENT_DISTORTION}))
+        lagging = search.get(both)
+        test = compare(distortion, lagging)
+    values = lagging.held.residuals.size
+    noise = lagging.fit.model.noise_chi2(values)
+    assert distortion.held.total < values, "one per value, nothing seemed left"
+    assert lagging.held.total < noise < distortion.held.total
+    assert MODEL_ERROR_SHARE * distortion.explained > 5 * test.chi2_gain
+    assert explains_the_rest(distortion, lagging)
+    assert test.model_error == 0.0 and test.significant
+    # The loop's time constant, each phase's: the plant's within a quarter.
+    amplifier = plan_trial(case).unit.amplifier
+    bandwidths = (amplifier.bandwidth_a_hz, amplifier.bandwidth_b_hz)
+    truth = [1e3 / (2 * math.pi * hz) for hz in bandwidths if hz is not None]
+    fitted = lagging.fit.params[lagging.fit.model.layout.slices["current_lag_ms"]]
+    for f, t in zip(fitted, truth, strict=True):
+        assert abs(f - t) < 0.25 * t, (fitted, truth)
