@@ -352,20 +352,13 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
     trial's count of values, since the two may keep different holds. A twin the diagnosis
     refuses (it clipped) gives no measure: −∞, which ``weakest_part`` treats as a failed fit.
 
-    Both are read as they came, the sensing element never turned back (``aligned``): a
-    turned element is physics the recording carries, and turned back it would leave no
-    excess on the tangential axis although the diagnosis saw it, on another axis.
+    Both are read as they came (``nominal_as_recorded``).
     """
-    from station.diagnosis.diagnose import aligned, nominal_of  # noqa: PLC0415
-
-    def as_recorded(timeline: Timeline) -> Nominal:
-        return nominal_of(timeline, read=aligned(timeline, turn_back=False))[1]
-
     concealed = plan.case.cls
     twins = ([(concealed.effects - {e}, concealed.unnamed) for e in sorted(concealed.effects)]
              + [(concealed.effects, concealed.unnamed - {u})
                 for u in sorted(concealed.unnamed)])
-    own = as_recorded(recorded)
+    own = nominal_as_recorded(recorded)
     parts = []
     for effects, unnamed in twins:
         twin = draw_unit(plan.case.seed, load=plan.unit.load, effects=effects, unnamed=unnamed)
@@ -375,7 +368,7 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
                                 substeps=PLANT_SUBSTEPS,
                                 extra_metadata={"schedule": "characterization"})
         try:
-            theirs = as_recorded(run)
+            theirs = nominal_as_recorded(run)
         except StationError:
             # The twin shakes harder than the unit (a damping effect taken away) and clips
             # at the range chosen for the unit: no measure, like a failed fit.
@@ -386,6 +379,16 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
         parts.append(mine.total - other.total / max(other.residuals.size, 1)
                      * mine.residuals.size)
     return weakest_part(parts)
+
+
+def nominal_as_recorded(timeline: Timeline) -> Nominal:
+    """The nominal fit as the diagnosis first makes it, on the recording as it came: its
+    sensing element never turned back (``aligned``). A turned element is physics the
+    recording carries; turned back, it would leave no excess on the tangential axis
+    although the diagnosis saw it, on another axis."""
+    from station.diagnosis.diagnose import aligned, nominal_of  # noqa: PLC0415
+
+    return nominal_of(timeline, read=aligned(timeline, turn_back=False))[1]
 
 
 def nominal_equivalent(twin: UnitParams, unit: UnitParams) -> UnitParams:

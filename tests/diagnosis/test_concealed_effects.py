@@ -31,7 +31,6 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 import pytest
 
-import station.diagnosis.diagnose as diagnose_module
 import station.sim.concealed as concealed_module
 from station.core import Effect, LoadKind, Trims
 from station.diagnosis.fit import HeldOut
@@ -178,17 +177,17 @@ def test_a_twin_the_diagnosis_refuses_gives_no_measure_rather_than_ending_the_be
         twins.append(object())
         return twins[-1]
 
-    def nominal_of(timeline: object) -> tuple[None, object]:
+    def nominal_as_recorded(timeline: object) -> object:
         if timeline is not recorded and twins.index(timeline) in refused:
             raise NotDiagnosable("41 settled segment(s) clipped at the sensor's full scale")
-        return None, timeline
+        return timeline
 
     def held_out_with(nominal: object, _effects: frozenset[Effect]) -> HeldOut:
         total = 1123.0 if nominal is recorded else 1000.0
         return HeldOut(np.array([total]), np.zeros(10))
 
     monkeypatch.setattr(concealed_module, "simulate_timeline", simulated)
-    monkeypatch.setattr(diagnose_module, "nominal_of", nominal_of)
+    monkeypatch.setattr(concealed_module, "nominal_as_recorded", nominal_as_recorded)
     monkeypatch.setattr(concealed_module, "_held_out_with", held_out_with)
     measured = twin_excess(plan, recorded)  # type: ignore[arg-type]
     assert len(twins) == len(effects)
