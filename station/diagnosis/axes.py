@@ -83,12 +83,18 @@ class AxisCoupling:
     def turn_deg(self) -> float:
         return math.degrees(self.turn_rad)
 
-    def finding(self) -> str:
-        low = 100.0 * (1.0 - math.cos(math.radians(self.turn_deg)))
+    def measured(self) -> str:
+        """What the axis shows, in words: the first part of every finding about it."""
         return (
             f"the sensor's {self.axis.value} axis carries {100 * self.coupling:+.1f} % (± "
             f"{100 * self.sigma:.2g}) of the tangential ripple in phase, where an element "
-            f"aligned with the load carries none (tolerance {100 * COUPLING_TOLERANCE:.0f} %): "
+            f"aligned with the load carries none (tolerance {100 * COUPLING_TOLERANCE:.0f} %)"
+        )
+
+    def finding(self) -> str:
+        low = 100.0 * (1.0 - math.cos(math.radians(self.turn_deg)))
+        return (
+            f"{self.measured()}: "
             f"the sensing element is turned by about {abs(self.turn_deg):.0f}° on its mount, "
             "or its axes couple. No id of the vocabulary describes this. The tangential axis "
             f"then reads the ripple about {low:.1f} % low: fitted torques scale with it, "
@@ -130,10 +136,8 @@ class ElementTurn:
     def finding(self) -> str:
         c = self.coupling
         return (
-            f"the sensor's {c.axis.value} axis carries {100 * c.coupling:+.1f} % (± "
-            f"{100 * c.sigma:.2g}) of the tangential ripple in phase, where an element "
-            f"aligned with the load carries none (tolerance {100 * COUPLING_TOLERANCE:.0f} %): "
-            f"the sensing element is turned by about {abs(c.turn_deg):.1f}° on its mount. "
+            f"{c.measured()}: the sensing element is turned by about "
+            f"{abs(c.turn_deg):.1f}° on its mount. "
             "No id of the vocabulary describes this. The diagnosis turned the tangential and "
             f"{c.axis.value} axes back by that angle, sample by sample, before any fit, so "
             "fitted torques are the load's; remount the sensor square to its fixture"

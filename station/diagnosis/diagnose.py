@@ -991,7 +991,7 @@ def explains_the_rest(smaller: Candidate, larger: Candidate) -> bool:
     of which the noise leaves 1317; counted as 3401, nothing was left to take, and the
     lag was held to 13,444 (``MODEL_ERROR_SHARE``) for a gain of 626.
     """
-    noise = larger.fit.model.noise_chi2(larger.held.residuals.size)
+    noise = larger.fit.model.noise_chi2()
     before = smaller.held.total - noise
     return before > 0 and larger.held.total - noise <= (1.0 - REST_SHARE) * before
 
@@ -1593,18 +1593,17 @@ def diagnose_observations(obs: Observations, progress: Callable[[str], None] | N
                                         LocatedKind.UNEXPLAINED)
         if extended.spec.sensor_bend:
             findings.append(bend_finding(extended, search.get(extended.effects)))
-        if turn is not None:
-            findings.append(Finding(turn.finding(), f"sensor_{turn.coupling.axis.value}_axis",
-                                    values={"turn_deg": turn.coupling.turn_deg,
-                                            "in_phase_share": turn.coupling.coupling,
-                                            "in_phase_share_sigma": turn.coupling.sigma}))
-            located += locate_axis(turn.coupling, turn.conditions)
         axes = axis_couplings(obs)
-        for coupled in (a for a in axes if a.significant):
-            findings.append(Finding(coupled.finding(), f"sensor_{coupled.axis.value}_axis",
-                                    values={"in_phase_share": coupled.coupling,
+        # The turn undone before the fits (measured on the recording as it came), then any
+        # coupling the models still carry.
+        shown = [(turn.finding(), turn.coupling, turn.conditions,
+                  {"turn_deg": turn.coupling.turn_deg})] if turn is not None else []
+        shown += [(a.finding(), a, obs.conditions, {}) for a in axes if a.significant]
+        for text, coupled, conditions, extra in shown:
+            findings.append(Finding(text, f"sensor_{coupled.axis.value}_axis",
+                                    values={**extra, "in_phase_share": coupled.coupling,
                                             "in_phase_share_sigma": coupled.sigma}))
-            located += locate_axis(coupled, obs.conditions)
+            located += locate_axis(coupled, conditions)
     warnings: list[str] = []
     if any(e.alternatives for e in named):
         warnings.append("some effects cannot be separated on these data; see each effect's "

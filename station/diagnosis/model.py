@@ -1595,14 +1595,14 @@ class Model:
         seg = np.repeat(segments, self.obs.orders)
         return np.concatenate([seg, seg, segments, [-1]])
 
-    def noise_chi2(self, values: int) -> float:
-        """What the sensor's noise alone leaves in expectation on ``values`` residuals of
-        this model: noise²/σ² for each part of a phasor, less than 1 where σ carries the
-        model floor of a strong ripple, and 1 for each other value (a torque balance's is
-        weighed by the floor itself)."""
+    def noise_chi2(self) -> float:
+        """What the sensor's noise alone leaves in expectation on this model's residuals:
+        noise²/σ² for each part of a phasor, less than 1 where σ carries the model floor
+        of a strong ripple, and 1 for each other value (a torque balance's is weighed by
+        the floor itself)."""
         noise = self.obs.noise
         harmonic = float(np.sum(2.0 * noise**2 / np.maximum(self.obs.sigma, 1e-12) ** 2))
-        return harmonic + (values - 2 * noise.size)
+        return harmonic + (self.residual_rows().size - 2 * noise.size)
 
     def residual_conditions(self) -> NDArray[np.intp]:
         """Condition of every entry of ``residuals`` (−1 for the prior)."""

@@ -939,7 +939,7 @@ def test_the_noise_leaves_its_own_share_of_a_strong_ripples_values_not_one_each(
     base = _case_nominal(Case(TrialClass(frozenset()), 41)).balanced
     held = held_out(base)
     values = held.residuals.size
-    noise = base.model.noise_chi2(values)
+    noise = base.model.noise_chi2()
     assert noise < 0.9 * values
     assert abs(held.total - noise) < 0.5 * abs(held.total - values), (held.total, noise, values)
 
@@ -963,7 +963,7 @@ def test_a_loop_lag_beside_a_strong_current_distortion_is_named_when_it_leaves_t
         lagging = search.get(both)
         test = compare(distortion, lagging)
     values = lagging.held.residuals.size
-    noise = lagging.fit.model.noise_chi2(values)
+    noise = lagging.fit.model.noise_chi2()
     assert distortion.held.total < values, "one per value, nothing seemed left"
     assert lagging.held.total < noise < distortion.held.total
     assert MODEL_ERROR_SHARE * distortion.explained > 5 * test.chi2_gain

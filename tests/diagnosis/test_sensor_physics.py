@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
+from station.analysis.timeline import Timeline
 from station.diagnosis.axes import (
     COUPLING_TOLERANCE,
     axis_couplings,
@@ -33,17 +34,35 @@ def _case(effect: UnnamedEffect, seed: int) -> Case:
     return Case(TrialClass(frozenset(), frozenset({effect})), seed)
 
 
-def _observed(case: Case, unit: UnitParams | None = None) -> Observations:
+def _recorded(case: Case, unit: UnitParams | None = None) -> Timeline:
     plan = plan_trial(case)
-    timeline = simulate_timeline(unit or plan.unit, plan.schedule, seed=case.seed,
-                                 loss=plan.loss, substeps=PLANT_SUBSTEPS)
-    return observe(timeline)
+    return simulate_timeline(unit or plan.unit, plan.schedule, seed=case.seed,
+                             loss=plan.loss, substeps=PLANT_SUBSTEPS)
+
+
+def _observed(case: Case, unit: UnitParams | None = None) -> Observations:
+    return observe(_recorded(case, unit))
 
 
 @pytest.fixture(scope="module")
-def turned() -> tuple[Case, Observations]:
+def turned_recording() -> tuple[Case, Timeline]:
+    """A belt whose element is turned by 7.4° (development seed 22), recorded once."""
     case = _case(UnnamedEffect.SENSOR_TILT, 22)
-    return case, _observed(case)
+    return case, _recorded(case)
+
+
+@pytest.fixture(scope="module")
+def square(turned_recording: tuple[Case, Timeline]) -> Observations:
+    """The same unit, schedule and noise with its element square to the fixture."""
+    case, _ = turned_recording
+    unit = plan_trial(case).unit
+    return _observed(case, replace(unit, sensor=replace(unit.sensor, tilt_rad=0.0)))
+
+
+@pytest.fixture(scope="module")
+def turned(turned_recording: tuple[Case, Timeline]) -> tuple[Case, Observations]:
+    case, timeline = turned_recording
+    return case, observe(timeline)
 
 
 def test_a_turned_sensor_puts_the_sine_of_its_turn_on_another_axis(
@@ -64,13 +83,8 @@ def test_a_turned_sensor_puts_the_sine_of_its_turn_on_another_axis(
     assert coupled[0].cells, "the coupled cells are located"
 
 
-def test_an_aligned_sensor_shows_no_coupling_on_its_other_axes(
-    turned: tuple[Case, Observations],
-) -> None:
-    case, _ = turned
-    unit = plan_trial(case).unit
-    aligned = replace(unit, sensor=replace(unit.sensor, tilt_rad=0.0))
-    for coupling in axis_couplings(_observed(case, aligned)):
+def test_an_aligned_sensor_shows_no_coupling_on_its_other_axes(square: Observations) -> None:
+    for coupling in axis_couplings(square):
         assert not coupling.significant, coupling
         assert abs(coupling.coupling) < COUPLING_TOLERANCE / 10, coupling
 
@@ -125,21 +139,17 @@ def _phasor_misfit(a: Observations, b: Observations) -> float:
 
 
 def test_a_turned_element_turned_back_reads_what_a_square_one_reads(
-    turned: tuple[Case, Observations],
+    turned_recording: tuple[Case, Timeline], turned: tuple[Case, Observations],
+    square: Observations,
 ) -> None:
     """The rotation undone on the samples is exact; the model of the radial part was a
     first-order approximation, and its leftovers were once named friction."""
-    case, raw = turned
-    plan = plan_trial(case)
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
-    square = replace(plan.unit, sensor=replace(plan.unit.sensor, tilt_rad=0.0))
-    reference = observe(simulate_timeline(square, plan.schedule, seed=case.seed,
-                                          loss=plan.loss, substeps=PLANT_SUBSTEPS))
+    case, timeline = turned_recording
+    _, raw = turned
+    tilt = plan_trial(case).unit.sensor.tilt_rad
     turn = element_turn(raw)
     assert turn is not None
-    assert abs(turn.angle_rad - plan.unit.sensor.tilt_rad) < math.radians(0.5), (
-        turn.angle_rad, plan.unit.sensor.tilt_rad)
+    assert abs(turn.angle_rad - tilt) < math.radians(0.5), (turn.angle_rad, tilt)
     back = observe(turned_back(timeline, turn))
     assert element_turn(back) is None
     for coupling in axis_couplings(back):
@@ -147,15 +157,14 @@ def test_a_turned_element_turned_back_reads_what_a_square_one_reads(
     # The same seed draws the same noise on the element's axes, so turned back it differs
     # from the square element's by sin α of the other axis's noise: sin²α of the noise
     # power, 1.7 % at this seed's 7.4°. As read, the turn leaves a third of it and more.
-    assert _phasor_misfit(back, reference) < 2.0 * math.sin(turn.angle_rad) ** 2
-    assert _phasor_misfit(raw, reference) > 0.2
+    assert _phasor_misfit(back, square) < 2.0 * math.sin(turn.angle_rad) ** 2
+    assert _phasor_misfit(raw, square) > 0.2
 
 
-def test_a_turned_element_is_reported_and_turned_back_before_any_fit() -> None:
-    case = _case(UnnamedEffect.SENSOR_TILT, 22)
-    plan = plan_trial(case)
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
+def test_a_turned_element_is_reported_and_turned_back_before_any_fit(
+    turned_recording: tuple[Case, Timeline],
+) -> None:
+    _, timeline = turned_recording
     read = aligned(timeline)
     assert read.turn is not None
     assert not read.first.axis_mixed, "nothing is left for the models to take out"
