@@ -9,7 +9,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-from station.analysis.harmonics import DEFAULT_ORDERS, demodulate
+from station.analysis.harmonics import DEFAULT_ORDERS, JOINT_ORDERS, demodulate
 
 SPP = 50.0  # samples per electrical period: 20 Hz at a 1 ms SYNC
 PERIODS = 12
@@ -200,3 +200,30 @@ def test_mismatched_shapes_and_too_few_samples_are_refused() -> None:
     few[:10] = 1.0
     with pytest.raises(ValueError, match="cannot determine"):
         demodulate(few, angle, SPP)
+
+
+@pytest.mark.parametrize("lost", [0.0, 0.05])
+def test_tonal_ripple_above_the_fitted_orders_is_not_counted_as_noise(lost: float) -> None:
+    """A chain mode high in the band carries orders beyond ``JOINT_ORDERS``: they are part
+    of the periodic motion, not of the sensor's noise that the phasors' σ comes from."""
+    spp = 83.3  # 12 Hz at a 1 ms SYNC: orders up to 41 are resolved
+    angle = _angle(round(8 * spp), spp)
+    sigma = 0.07
+    high = {k: 0.6 * np.exp(0.3j * k) for k in range(JOINT_ORDERS + 1, JOINT_ORDERS + 6)}
+    noise = np.random.default_rng(11).normal(0.0, sigma, angle.size)
+    signal = _drop(_signal(angle, CONTENT | high) + noise, lost, seed=3)
+    h = demodulate(signal, angle, spp)
+    assert h.noise_variance == pytest.approx(sigma**2, rel=0.15)
+    # What the reported orders keep from the 16 fitted ones is not white: far above σ².
+    assert h.residual_rms**2 > 20 * sigma**2
+
+
+def test_a_segment_too_short_for_every_order_finds_its_noise_with_the_orders_it_can_fit(
+) -> None:
+    spp = 166.7  # 6 Hz: 83 orders resolved, more than one period's samples can fit
+    angle = _angle(round(1.2 * spp), spp)
+    sigma = 0.05
+    noise = np.random.default_rng(12).normal(0.0, sigma, angle.size)
+    h = demodulate(_signal(angle, CONTENT) + noise, angle, spp)
+    assert math.isfinite(h.noise_variance)
+    assert h.noise_variance == pytest.approx(sigma**2, rel=0.3)
