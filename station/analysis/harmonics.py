@@ -45,9 +45,10 @@ class Harmonics:
     residual_rms: float
     samples_used: int
     samples_missing: int
-    # σ² of one sample's noise (dof-corrected): what is left once every order the sampling
-    # resolves is fitted (``_white_variance``); and each order's variance per unit of it:
-    # white noise alone would give ``noise_variance * unit_variance``.
+    # σ² of one sample's noise (dof-corrected): what the fitted orders leave, or with
+    # ``demodulate(white_noise=True)`` what every order the sampling resolves leaves
+    # (``_white_variance``); and each order's variance per unit of it: white noise alone
+    # would give ``noise_variance * unit_variance``.
     noise_variance: float = math.nan
     unit_variance: NDArray[np.float64] | None = None
 
@@ -148,8 +149,8 @@ def _white_variance(angle: NDArray[np.float64], y: NDArray[np.float64],
     more = min(nyquist, fitted + int((1.0 - NOISE_DOF_SHARE) * used - x.shape[1]) // 2)
     if more <= fitted:
         return sigma2
-    phase = np.outer(angle, np.arange(fitted + 1, more + 1))
-    wide = np.column_stack([x, np.cos(phase), np.sin(phase)])
+    # The design to ``more`` orders, with ``x``'s decay columns (those after its orders).
+    wide = np.column_stack([_design(angle, more), x[:, 2 * fitted + 1:]])
     try:
         coef = np.linalg.solve(wide.T @ wide, wide.T @ y)
     except np.linalg.LinAlgError:
@@ -167,6 +168,7 @@ def demodulate(
     orders: int = DEFAULT_ORDERS,
     decays: Sequence[complex] = (),
     decay_from: float = 0.0,
+    white_noise: bool = False,
 ) -> Harmonics:
     """Least-squares phasors of orders 1..``orders`` referenced to ``angle``, fitted
     jointly with the orders up to ``JOINT_ORDERS``.
@@ -176,7 +178,9 @@ def demodulate(
     ``decays`` are poles per sample (λ·T, one of each conjugate pair) of a transient
     still ringing, whose change happened ``decay_from`` samples before the first:
     each is fitted with a free amplitude and phase, so it biases no phasor and costs
-    the precision it shares with them.
+    the precision it shares with them. ``white_noise`` finds ``noise_variance`` beyond
+    every resolvable order (``_white_variance``): the diagnosis weighs each phasor by
+    it, while calibration reads only ``variance`` and does not pay for the wider fit.
     """
     if signal.shape != angle.shape or signal.ndim != 1:
         raise ValueError(f"signal {signal.shape} and angle {angle.shape} must match (1-D)")
@@ -199,7 +203,8 @@ def demodulate(
     phasors[:kept] = (a - 1j * b)[:kept]
     dof = used - x.shape[1]
     sigma2 = float(residual @ residual) / dof
-    white = _white_variance(angle[ok], y, x, fitted=fitted, nyquist=nyquist, sigma2=sigma2)
+    white = (_white_variance(angle[ok], y, x, fitted=fitted, nyquist=nyquist, sigma2=sigma2)
+             if white_noise else sigma2)
     per_unit = np.diag(np.linalg.pinv(x.T @ x))
     unit = np.full(orders, np.nan)
     unit[:kept] = (per_unit[1 : fitted + 1] + per_unit[fitted + 1 : 2 * fitted + 1])[:kept]

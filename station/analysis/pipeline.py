@@ -57,6 +57,7 @@ class AnalysisOptions:
     # Settling of holds too short to judge from their own data (None: they are skipped).
     settle_fallback: SettleFallback | None = None
     settle_orders: tuple[int, ...] = SETTLE_ORDERS  # whose per-period phasors must settle
+    white_noise: bool = False  # each segment's noise beyond every order (``demodulate``)
 
 
 class EstimateUnsupported(InputError):
@@ -142,7 +143,8 @@ def measure(
     out: list[Measured] = []
     for seg in segments:
         try:
-            h = seg.harmonics(signal[seg.start : seg.stop], options.orders)
+            h = seg.harmonics(signal[seg.start : seg.stop], options.orders,
+                              white_noise=options.white_noise)
         except ValueError as exc:
             rejected.append(Rejected(seg.start, seg.stop, f"cannot demodulate: {exc}"))
             continue

@@ -189,14 +189,15 @@ class Segment:
         position = self.position0 + self.microsteps_per_sample * n
         return (2 * math.pi / cycle) * np.mod(position, cycle)
 
-    def harmonics(self, window: NDArray[np.float64], orders: int) -> Harmonics:
+    def harmonics(self, window: NDArray[np.float64], orders: int, *,
+                  white_noise: bool = False) -> Harmonics:
         """``demodulate`` of the segment's samples ``window`` on its own angle, with the
         chain's ringing fitted out from the hold's change where it still rings."""
         turn = 2j * math.pi / self.samples_per_period
         sidebands = tuple(p + k * turn for p in self.ringing for k in SIDEBANDS)
         return demodulate(window, self.electrical_angle(), self.samples_per_period,
                           orders=orders, decays=self.ringing + sidebands,
-                          decay_from=self.start - self.held_from)
+                          decay_from=self.start - self.held_from, white_noise=white_noise)
 
 
 @dataclass(frozen=True)

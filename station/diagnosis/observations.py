@@ -273,7 +273,7 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     """
     measured, rejected = measure(timeline, AnalysisOptions(
         orders=max(orders, DEMODULATED_ORDERS), settle_fallback=settle_fallback,
-        settle_orders=tuple(range(1, orders + 1))))
+        settle_orders=tuple(range(1, orders + 1)), white_noise=True))
     conditions = group_conditions(measured, timeline.sync_period_s)
     keys: list[ConditionKey] = []
     rows: list[tuple[int, Measured]] = []

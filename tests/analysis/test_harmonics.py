@@ -212,7 +212,7 @@ def test_tonal_ripple_above_the_fitted_orders_is_not_counted_as_noise(lost: floa
     high = {k: 0.6 * np.exp(0.3j * k) for k in range(JOINT_ORDERS + 1, JOINT_ORDERS + 6)}
     noise = np.random.default_rng(11).normal(0.0, sigma, angle.size)
     signal = _drop(_signal(angle, CONTENT | high) + noise, lost, seed=3)
-    h = demodulate(signal, angle, spp)
+    h = demodulate(signal, angle, spp, white_noise=True)
     assert h.noise_variance == pytest.approx(sigma**2, rel=0.15)
     # What the reported orders keep from the 16 fitted ones is not white: far above σ².
     assert h.residual_rms**2 > 20 * sigma**2
@@ -224,6 +224,6 @@ def test_a_segment_too_short_for_every_order_finds_its_noise_with_the_orders_it_
     angle = _angle(round(1.2 * spp), spp)
     sigma = 0.05
     noise = np.random.default_rng(12).normal(0.0, sigma, angle.size)
-    h = demodulate(_signal(angle, CONTENT) + noise, angle, spp)
+    h = demodulate(_signal(angle, CONTENT) + noise, angle, spp, white_noise=True)
     assert math.isfinite(h.noise_variance)
     assert h.noise_variance == pytest.approx(sigma**2, rel=0.3)
