@@ -92,6 +92,7 @@ from station.diagnosis.groups import (
     GROUP_ESTIMATES,
     GROUP_PARAMETERS,
     GROUP_STARTS,
+    GROUP_TOURNAMENT,
     scan_trials,
     separating_experiment,
 )
@@ -676,7 +677,11 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
     for effect in added:
         maker = GROUP_STARTS.get(effect)
         if maker is not None:
-            starts += [model.with_values(start, values) for values in maker(model, start)]
+            made = [model.with_values(start, values) for values in maker(model, start)]
+            if effect in GROUP_TOURNAMENT:
+                estimated += made
+            else:
+                starts += made
         estimate = GROUP_ESTIMATES.get(effect)
         if estimate is not None:
             estimated += [model.with_values(start, values) for values in estimate(model, start)]

@@ -214,6 +214,14 @@ GROUP_STARTS: dict[Effect, Callable[[Model, NDArray[np.float64]], list[Starts]]]
 """Groups whose nonlinear parameters need more than one start; the linear ones start at
 zero (absent) and are solved."""
 
+GROUP_TOURNAMENT = frozenset({Effect.LOAD_RESONANCE})
+"""Groups whose every start goes to the short polish (``fit.best_of``) instead of the
+best two by their χ² before any polish: a coupling's χ² there says little about its
+basin. Solving a strong detent's linear parts at each start favours any frequency where
+the ripple it leaves is large; on development belt @1838253693 (detent torque and a
+second compliance at 285 Hz) the two best-ranked starts settled at χ² 690, one ranked
+lower at 512 with the coupling at 296 Hz, and the coupling was named only then."""
+
 
 # --------------------------------------------------------------------------- parameters
 def _pair(values: NDArray[np.float64], sigma: NDArray[np.float64], scale: float

@@ -292,6 +292,23 @@ def test_an_eccentric_rotor_beside_strong_flux_harmonics_is_judged_against_wrong
     assert not twin.significant
 
 
+def test_a_coupling_beside_a_strong_detent_is_found_from_a_start_its_first_rank_passed_over(
+) -> None:
+    """Solved at each of the coupling's starts, a strong detent's linear parts favour any
+    frequency where the ripple they leave is large, so the starts ranked best before a
+    polish are not the ones that lead to the coupling: every start gets the short polish
+    (``GROUP_TOURNAMENT``). On this belt (a detent and a second compliance at 285 Hz) the
+    two best-ranked starts settled at χ² 690 and the coupling did not count."""
+    detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
+    case = Case(TrialClass(frozenset({detent, coupling})), 1838253693)
+    test = _beside(case, detent, coupling)
+    assert test.significant
+    plant = plan_trial(case).unit.mechanics.coupling
+    assert plant is not None
+    fitted = math.exp(float(test.larger.fit.value("log_coupling_hz")[0]))
+    assert fitted == pytest.approx(plant.resonance_hz, rel=0.1)
+
+
 @functools.cache
 def _concealed_friction() -> Test:
     """Friction concealed in a belt unit (seed 26), its group added: fitted once for the
