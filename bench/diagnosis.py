@@ -34,7 +34,7 @@ import statistics
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,7 @@ from station.paths import HOME_ENV
 from station.sim.concealed import (
     CLASSES,
     REFUSED,
+    Case,
     Trial,
     cases,
     confusion,
@@ -98,6 +99,15 @@ def _alone(trials: list[Trial], root: Path) -> list[tuple[float, bool]]:
     return out
 
 
+def _result(case: Case, future: Future[Trial]) -> Trial:
+    """The trial, or its crash under the case's label: a fresh seed is drawn once, and the
+    label (``Case(cls, seed)``) is all that reproduces it."""
+    try:
+        return future.result()
+    except Exception as exc:
+        raise RuntimeError(f"the diagnosis of trial {case.label} crashed") from exc
+
+
 def _answer(doc: dict[str, Any]) -> tuple[Any, ...]:
     """What a diagnosis concluded: its ids with their rivals, the mismatch, a refusal."""
     if REFUSED in doc:
@@ -117,7 +127,8 @@ def measure() -> list[BenchRecord]:
     started = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-diagnosis-") as tmp:
         with ProcessPoolExecutor(max_workers=2) as pool:
-            trials = list(pool.map(run_trial, drawn, [Path(tmp)] * len(drawn)))
+            futures = [pool.submit(run_trial, case, Path(tmp)) for case in drawn]
+            trials = [_result(case, future) for case, future in zip(drawn, futures, strict=True)]
         alone = _alone(trials, Path(tmp))
     wall_min = (time.perf_counter() - started) / 60.0
     print(confusion(trials), file=sys.stderr, flush=True)

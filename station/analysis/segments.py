@@ -90,19 +90,26 @@ class ChainDecay:
     def _seconds(self, pole: complex) -> float:
         return self.e_foldings / -pole.real
 
-    def kicked(self, kick_mps2: float) -> ChainDecay:
-        """The decay of a change that starts the modes ringing at ``kick_mps2``.
+    def kicked(self, kick_mps2: float, since_s: float = 0.0) -> ChainDecay:
+        """The decay of a change whose modes still ring at ``kick_mps2`` ``since_s`` after
+        it (at the change itself by default).
 
         A fixed number of e-foldings leaves a fixed share of the transient: on a rough
         disk a trim step rings the mode at some 3 m/s², and its 1/300 is still ten times
         the noise of the harmonics (development disk none@208: the first hold alone left
         40 % of the recording's χ²). So the decay is waited out down to the harmonics'
-        resolution, and never less than ``e_foldings``.
+        resolution, and never less than ``e_foldings``. A ring seen later is referred back
+        to the change at the slowest mode's rate, counted in e-foldings: a well damped mode
+        seen long after its change would be e^{rate·t} beyond any float (a benchmark belt
+        overflowed there).
         """
-        if self.resolution_mps2 <= 0.0 or kick_mps2 <= self.resolution_mps2:
+        if self.resolution_mps2 <= 0.0 or kick_mps2 <= 0.0:
             return self
-        return replace(self, e_foldings=max(
-            self.e_foldings, math.log(kick_mps2 / self.resolution_mps2)))
+        folds = (math.log(kick_mps2 / self.resolution_mps2)
+                 + self.slowest_decay_per_s() * since_s)
+        if folds <= self.e_foldings:
+            return self
+        return replace(self, e_foldings=folds)
 
     def slowest_decay_per_s(self) -> float:
         """The decay rate of the slowest mode (1/s; 0 with none)."""
@@ -370,23 +377,22 @@ def settled_period(per_period: NDArray[np.complex128]) -> int | None:
     return None
 
 
-def _ringing_at_change(per_period: NDArray[np.complex128], since_change_s: float,
-                       period_s: float, decay: ChainDecay) -> float:
-    """How hard the hold's change rang the chain (m/s², referred back to the change), from
-    the stretch's own first period against its last; 0 where nothing rings clearly.
+def _rung_by_change(per_period: NDArray[np.complex128], since_change_s: float,
+                    period_s: float, decay: ChainDecay) -> ChainDecay:
+    """``decay`` kicked as hard as the hold's change rang the chain, seen in the stretch's
+    own first period against its last; as it is where nothing rings clearly.
 
     The first period's phasors less the last ones are the transient there (the last
-    carries the least of it); their largest, at the middle of the first period, grows
-    back to the change at the slowest mode's decay rate. Below ``KICK_VISIBLE`` times the
-    harmonics' resolution it may be the noise of one period's phasors, and says nothing.
+    carries the least of it); their largest is seen at the middle of the first period.
+    Below ``KICK_VISIBLE`` times the harmonics' resolution it may be the noise of one
+    period's phasors, and says nothing.
     """
-    rate = decay.slowest_decay_per_s()
-    if per_period.shape[0] < 2 or per_period.shape[1] == 0 or rate <= 0.0:
-        return 0.0
+    if per_period.shape[0] < 2 or per_period.shape[1] == 0 or decay.slowest_decay_per_s() <= 0:
+        return decay
     seen = float(np.max(np.abs(per_period[0] - per_period[-1])))
     if seen <= KICK_VISIBLE * decay.resolution_mps2:
-        return 0.0
-    return seen * math.exp(rate * (since_change_s + 0.5 * period_s))
+        return decay
+    return decay.kicked(seen, since_change_s + 0.5 * period_s)
 
 
 KICK_VISIBLE = 10.0
@@ -467,8 +473,8 @@ def steady_segments(
                 # Seconds from the change until this hold's own ringing is down to what
                 # the harmonics resolve: waited for as far as the hold allows, never at
                 # the cost of fitting a mode out that the plain decay would not.
-                longest = 0.0 if decay is None else decay.kicked(_ringing_at_change(
-                    phasors, (a - hold.start) * period_s, spp * period_s, decay)).settle_s()
+                longest = 0.0 if decay is None else _rung_by_change(
+                    phasors, (a - hold.start) * period_s, spp * period_s, decay).settle_s()
                 if first is None and settle_fallback is not None and decay is None:
                     rejected.append(Rejected(a, b, (
                         f"a hold of {held:.1f} periods at {signed_hz:+.1f} Hz ends before the "

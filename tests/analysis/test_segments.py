@@ -571,6 +571,17 @@ def test_kicked_decay_counts_e_foldings_down_to_the_resolution_and_never_fewer()
     assert decay.slowest_decay_per_s() == pytest.approx(10.0)
 
 
+def test_a_ring_seen_long_after_its_change_is_referred_back_to_it_in_e_foldings() -> None:
+    """A well damped mode seen a second after its change would have rung e^10000 times
+    harder at the change, beyond any float: its wait is that second and the e-foldings
+    from what is seen down to the resolution."""
+    fast = ChainDecay((complex(-1e4, 3e4),), math.log(300.0), 0.02, 0.01)
+    assert fast.kicked(1.0, since_s=1.0).settle_s() == pytest.approx(1.0 + math.log(100.0) / 1e4)
+    slow = ChainDecay((complex(-10.0, 300.0),), math.log(300.0), 0.02, 0.01)
+    assert slow.kicked(0.5, since_s=0.1).e_foldings == pytest.approx(
+        slow.kicked(0.5 * math.e).e_foldings)
+
+
 def test_a_ringing_modulated_by_the_electrical_angle_is_fitted_out_with_its_sidebands(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -858,7 +858,7 @@ def test_a_rough_disks_trim_steps_are_waited_out_until_their_ringing_is_below_th
     the unit is described to the noise."""
     timeline, _ = _clean(208)
     assert _held_per_value(timeline) < 1.25
-    monkeypatch.setattr(ChainDecay, "kicked", lambda self, kick: self)
+    monkeypatch.setattr(ChainDecay, "kicked", lambda self, *_: self)
     assert _held_per_value(timeline) > 1.5
 
 
