@@ -1566,13 +1566,13 @@ class Model:
                  if not (np.array_equal(q[index], p[index]) and np.array_equal(x.i_a, here.i_a)
                          and np.array_equal(x.i_b, here.i_b)
                          and np.array_equal(x.modulation, here.modulation))]
-        h = np.asarray(steps, dtype=np.float64)[:, None, None]
+        h = np.asarray(steps, dtype=np.float64)
 
         def d(pick: Callable[[_Inputs], NDArray[Any]]) -> NDArray[Any]:
-            shape = (-1, *([1] * pick(here).ndim))
+            # Each point's step, along the first axis of whatever the input's shape is.
+            per_point = h.reshape(-1, *([1] * pick(here).ndim))
             out: NDArray[Any] = (np.stack([pick(x) for x in inputs])
-                                 - np.stack([pick(x) for x in mirrored])) / (
-                2.0 * h.reshape(shape))
+                                 - np.stack([pick(x) for x in mirrored])) / (2.0 * per_point)
             return out
 
         t = m.transfer
