@@ -332,10 +332,16 @@ def _blocks_reluctance(spec: ModelSpec, obs: Observations) -> list[Block]:
 
 
 def _blocks_resonance(spec: ModelSpec, obs: Observations) -> list[Block]:
+    # A mode needs an inertia beyond its spring and less damping than would stop it
+    # swinging: a coupling with next to nothing beyond it (a hundredth of the inertia) or
+    # damped at twice critical is a filter on the motion, not a transmission mode. Both
+    # were fitted beside strong friction on disks (development friction@1850757460: 2 kHz,
+    # 1 % beyond; @94205421: 700 Hz at ζ 2.0) and named load_resonance; the population's
+    # couplings have 17 % to 97 % of the inertia beyond them and ζ up to 0.1.
     return [
-        Block("coupling_fraction", 1, 0.5, 0.01, 0.99),
+        Block("coupling_fraction", 1, 0.5, 0.01, 0.99, rejects=(-1,)),
         Block("log_coupling_hz", 1, _log(150.0), _log(5.0), _log(8000.0), rejects=(-1, 1)),
-        Block("coupling_damping_ratio", 1, 0.05, 0.0, 2.0),
+        Block("coupling_damping_ratio", 1, 0.05, 0.0, 2.0, rejects=(1,)),
     ]
 
 
