@@ -70,6 +70,12 @@ STALLED_SHARE: Final = 0.999
 """A hold whose steady peak reaches this share of the widest range's full scale clipped
 there (``_runnable``)."""
 
+SCHEDULE_DRAWS: Final = 10
+"""Characterizations drawn for one unit until one leaves two speeds it runs at
+(``_runnable``): a disk with strong flux harmonics that stalls at all but one of the drawn
+speeds is characterized again at others, as an engineer would after the first run (each
+of the four benchmark runs before this refused one such trial)."""
+
 RANGE_MARGIN: Final = 0.8
 """The sensor range is the smallest whose full scale the run's peaks stay under by this
 factor: the range a careful engineer would set after a first look."""
@@ -233,24 +239,25 @@ def _steady_peaks(timeline: Timeline, schedule: Schedule) -> list[float]:
     return peaks
 
 
-def _runnable(schedule: Schedule, peaks: list[float]) -> tuple[Schedule, float]:
+def _runnable(schedule: Schedule, peaks: list[float]) -> tuple[Schedule, float] | None:
     """``schedule`` without the speeds at which the unit fell out of step, and the largest
-    steady peak of what is left.
+    steady peak of what is left; None when fewer than two speeds are left.
 
     A speed at which every hold, at every current, clips even the widest range (a disk
     with strong flux harmonics that stalled above 20 Hz electrical) is one no engineer
     would characterize at; its refusal measured the draw, not the diagnosis. A speed
     where only some holds clip or come near full scale (a rotor swinging on its own mode
-    near one current) is physics the diagnosis must handle, and stays. At least two
-    speeds are kept: with fewer the schedule stays as drawn, and the diagnosis says what
-    it could not use.
+    near one current) is physics the diagnosis must handle, and stays. A characterization
+    needs two speeds: with fewer left, the engineer writes another (``plan_trial``).
     """
     clipped = STALLED_SHARE * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
     speeds = {abs(h.velocity) for h in schedule.holds if h.velocity}
     stalled = {v for v in speeds
                if all(peak >= clipped for h, peak in zip(schedule.holds, peaks, strict=True)
                       if abs(h.velocity) == v)}
-    if not stalled or len(speeds - stalled) < 2:
+    if len(speeds - stalled) < 2:
+        return None
+    if not stalled:
         return schedule, max(peaks, default=0.0)
     kept = [(h, peak) for h, peak in zip(schedule.holds, peaks, strict=True)
             if abs(h.velocity) not in stalled]
@@ -272,14 +279,21 @@ def plan_trial(case: Case) -> TrialPlan:
     load = LoadKind.DISK if rng.random() < 0.5 else LoadKind.BELT
     unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed)
     center = _center(rng, unit)
-    schedule = _schedule(rng, center)
-    unit = _friction_within_reach(unit, schedule)
-    # A first run at the widest range: the range a careful engineer would then set. Holds
-    # at extreme trims may still clip there (a light disk shaken hard): the diagnosis must
-    # then say what it could not use, as it would on the line.
-    probe = replace(schedule, sensor_range_g=max(SENSOR_RANGES_G))
-    run = simulate_timeline(unit, probe, seed=case.seed)
-    schedule, peak = _runnable(schedule, _steady_peaks(run, probe))
+    drawn = unit
+    for _ in range(SCHEDULE_DRAWS):
+        schedule = _schedule(rng, center)
+        unit = _friction_within_reach(drawn, schedule)
+        # A first run at the widest range: the range a careful engineer would then set.
+        # Holds at extreme trims may still clip there (a light disk shaken hard): the
+        # diagnosis must then say what it could not use, as it would on the line.
+        probe = replace(schedule, sensor_range_g=max(SENSOR_RANGES_G))
+        peaks = _steady_peaks(simulate_timeline(unit, probe, seed=case.seed), probe)
+        runnable = _runnable(schedule, peaks)
+        if runnable is not None:
+            schedule, peak = runnable
+            break
+    else:  # as last drawn: the diagnosis says what it could not use
+        peak = max(peaks, default=0.0)
     schedule = replace(schedule, name="characterization", sensor_range_g=_range_for(peak))
     loss = float(rng.uniform(0.0, 0.01))
     return TrialPlan(case, unit, schedule, loss, center)

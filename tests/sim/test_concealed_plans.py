@@ -9,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from station.core import STANDARD_GRAVITY, Effect
+from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Effect
 from station.diagnosis.diagnose import nominal_of
 from station.physics.params import UnitParams
 from station.physics.plant import modal_analysis
@@ -19,6 +19,7 @@ from station.sim.concealed import (
     Case,
     TrialClass,
     _runnable,
+    _steady_peaks,
     nominal_equivalent,
     plan_trial,
 )
@@ -92,7 +93,7 @@ def test_the_speeds_a_unit_falls_out_of_step_at_are_left_out_of_its_characteriza
     (set(), 3),  # nothing stalled: as drawn
     ({3}, 3),  # one hold clipped at a speed, the others not: a swing, not a stall
     ({0}, 2),  # one speed stalled: the two others
-    ({0, 1}, 3),  # one speed would be left: as drawn, for the diagnosis to say
+    ({0, 1}, 0),  # one speed would be left: no characterization
 ])
 def test_a_stalled_speed_is_dropped_only_while_two_speeds_remain(
         stalled: set[int], kept: int) -> None:
@@ -104,7 +105,27 @@ def test_a_stalled_speed_is_dropped_only_while_two_speeds_remain(
              else (1.0 if h.velocity else 0.0) for h in schedule.holds]
     if stalled == {3}:  # not a speed: one hold of the first speed clips
         peaks[next(i for i, h in enumerate(schedule.holds) if h.velocity)] = full
-    out, peak = _runnable(schedule, peaks)
+    assert max(peaks) == (1.0 if not stalled else full)
+    runnable = _runnable(schedule, peaks)
+    if not kept:
+        assert runnable is None
+        return
+    assert runnable is not None
+    out, peak = runnable
     assert len({abs(h.velocity) for h in out.holds if h.velocity}) == kept
     assert peak == (1.0 if kept == 2 else max(peaks))
-    assert max(peaks) == (1.0 if not stalled else full)
+
+
+def test_a_unit_that_runs_at_one_drawn_speed_only_is_characterized_at_others() -> None:
+    """Benchmark, session 25 (detent_torque+flux_harmonics@1456061531, a disk): of its two
+    drawn speeds the unit stalled at 37.5 Hz, and the recording, left with one speed, was
+    refused. The trial draws another characterization, one the unit runs at two speeds
+    of."""
+    cls = TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS}))
+    plan = plan_trial(Case(cls, 1456061531))
+    probe = replace(plan.schedule, sensor_range_g=max(SENSOR_RANGES_G))
+    run = simulate_timeline(plan.unit, probe, seed=plan.case.seed)
+    clipped = 0.99 * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
+    running = {abs(h.velocity) for h, peak in zip(probe.holds, _steady_peaks(run, probe),
+                                                  strict=True) if h.velocity and peak < clipped}
+    assert len(running) >= 2
