@@ -33,6 +33,7 @@ from station.diagnosis.diagnose import (
     _transplant,
     candidate_of,
     compare,
+    coupling_as_belt,
     explains_the_rest,
     fit_nominal,
     fit_spec,
@@ -78,6 +79,8 @@ from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
 
 if TYPE_CHECKING:  # not imported at run time: pytest would take the class for tests
+    from numpy.typing import NDArray
+
     from station.analysis.timeline import Timeline
     from station.diagnosis.diagnose import Test
 
@@ -310,6 +313,43 @@ def test_a_coupling_beside_a_strong_detent_is_found_from_a_start_its_first_rank_
     assert plant is not None
     fitted = math.exp(float(test.larger.fit.value("log_coupling_hz")[0]))
     assert fitted == pytest.approx(plant.resonance_hz, rel=0.1)
+
+
+def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_mode(
+) -> None:
+    """On this belt (detent torque, no coupling; belt mode 143 Hz at ζ 0.12 with the motor
+    held) the detent model's belt sat where it did nothing, damped at 1.5, and a coupling
+    took the belt's own mode: named load_resonance beside detent_torque, the trial scored
+    0 (benchmark, session 28). Polished from the coupling's point with the coupling's
+    group taken out, the belt stayed where it was; moved into the belt
+    (``coupling_as_belt``), the model without the coupling fits as well as the one with
+    it, and its belt is the plant's."""
+    detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
+    case = Case(TrialClass(frozenset({detent})), 1981511873)
+    test = _beside(case, detent, coupling)
+    assert test.significant
+    larger, smaller = test.larger.fit, test.smaller.fit
+    model, obs = smaller.model, smaller.model.obs
+    nominal_chi2 = smaller.chi2 + test.smaller.explained
+
+    def against_coupling(start: NDArray[np.float64]) -> Test:
+        with threadpool_limits(limits=1, user_api="blas"):
+            kept = candidate_of(obs, nominal_chi2, polish(model, start))
+        return compare(kept, test.larger)
+
+    assert against_coupling(_transplant(model, larger)).significant
+    start = coupling_as_belt(model, larger)
+    assert start is not None
+    moved = against_coupling(start)
+    assert not moved.significant
+    belt = plan_trial(case).unit.mechanics.belt
+    assert belt is not None
+    plant_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
+    fitted_hz = math.exp(float(moved.smaller.fit.value("log_belt_hz")[0]))
+    assert fitted_hz == pytest.approx(plant_hz, rel=0.1)
+    # A disk declares no belt to move it into.
+    disk = Model(replace(model.spec, chain=ChainKind.RIGID), obs)
+    assert coupling_as_belt(disk, larger) is None
 
 
 @pytest.mark.parametrize(("seed", "bound"), [
