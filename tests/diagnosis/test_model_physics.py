@@ -57,6 +57,8 @@ from station.diagnosis.groups import (
     CLOCK_RATES_PPM,
     GROUP_ESTIMATES,
     GROUP_PARAMETERS,
+    MIN_CLOCK_PPM,
+    ClockScan,
     _starts_clock,
     segment_delays,
 )
@@ -205,6 +207,37 @@ def test_a_clocks_sawtooth_is_measured_at_its_full_size_so_its_rate_stands_out()
     # Wrapped into one period: a step across the sawtooth's wrap is a step all the same.
     gap = (np.array(steps) - np.array(expected) + 0.5) % 1.0 - 0.5
     assert np.median(np.abs(gap)) < 0.05, gap
+
+
+def test_a_clocks_rate_and_its_aliases_are_told_from_the_holds_own_rhythm() -> None:
+    """Holds of one length sample the sawtooth once each: rates one sawtooth per hold
+    apart give the same delays at every hold's centre, so the periodogram cannot choose
+    between them and the fit must see each (on a belt the screen dropped the true rate
+    for its alias, sensor_clock_drift@572933410: χ² 156,125 where 865 was to be had).
+    Rates that are aliases of no drift at all are the base model's delay, not a lead."""
+    hold, holds, period = 429, 128, 1e-3
+    centre = 3000.0 + hold * (np.arange(holds) + 0.5)
+    drift, phase = -169.6, 0.3
+    rng = np.random.default_rng(7)
+    delay = period * ((phase - centre * drift * 1e-6) % 1.0) + rng.normal(0.0, 2e-5, holds)
+    middle = 0.5 * (3000.0 + centre[-1] + hold / 2)
+    scan = ClockScan(delay, np.ones(holds), centre, period, middle)
+    peaks = [p["clock_drift_ppm"][0] for p in scan.peaks(CLOCK_PEAKS)]
+    rates = [r for r in peaks if abs(r) >= MIN_CLOCK_PPM]
+    family = scan.family(rates)
+    step = 1e6 / hold  # ppm: one sawtooth more per hold
+    assert any(abs(r - drift) < 2.0 for r in family)
+    for rate in family:
+        assert (rate - drift) / step == pytest.approx(round((rate - drift) / step), abs=0.01)
+    assert any(abs(r - drift - step) < 2.0 for r in family)
+    # Rates a whole number of sawtooths per hold from none (a recording's constant delay
+    # makes peaks there) lead nothing, however strong.
+    led = scan.family([step, -2.0 * step, *rates])
+    assert sorted(led) == sorted(family)
+    # The sawtooth's phase at the recording's middle comes with the rate.
+    lead = next(p for p in scan.peaks(CLOCK_PEAKS) if abs(p["clock_drift_ppm"][0] - drift) < 2)
+    expected = (phase - middle * drift * 1e-6) % 1.0
+    assert (lead["clock_phase"][0] - expected + 0.5) % 1.0 - 0.5 == pytest.approx(0.0, abs=0.02)
 
 
 @pytest.mark.parametrize("drift_ppm", [-2400.0, -37.0, 0.0, 5.0, 412.0])
