@@ -216,7 +216,7 @@ def test_a_clocks_rate_and_its_aliases_are_told_from_the_holds_own_rhythm() -> N
     for its alias, sensor_clock_drift@572933410: χ² 156,125 where 865 was to be had).
     Rates that are aliases of no drift at all are the base model's delay, not a lead."""
     hold, holds, period = 429, 128, 1e-3
-    centre = 3000.0 + hold * (np.arange(holds) + 0.5)
+    centre = np.asarray(3000.0 + hold * (np.arange(holds) + 0.5), dtype=np.float64)
     drift, phase = -169.6, 0.3
     rng = np.random.default_rng(7)
     delay = period * ((phase - centre * drift * 1e-6) % 1.0) + rng.normal(0.0, 2e-5, holds)
