@@ -22,6 +22,8 @@ an excess below −50 is a failed fit, not invisible physics, and counts as a mi
 does a twin the diagnosis refuses).
 The trials within ±50 are counted apart and must not be given a wrong id; the
 share over every trial is reported too.
+A control (a clean unit) must be given no id and no mismatch: a residual flagged on a
+clean unit is a false alarm, counted apart from the ids.
 
 ``STATION_BENCH_DIAGNOSIS_PER_CLASS`` lowers the trial count for a quick look;
 the figures a note quotes come from the default.
@@ -165,6 +167,13 @@ def measure() -> list[BenchRecord]:
                     "fraction", NAMED_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_controls_without_id",
                     statistics.fmean(0.0 if t.doc.get("effects", True) else 1.0
+                                     for t in controls),
+                    "fraction", CONTROL_TARGET, Goal.AT_LEAST),
+        # A clean unit flagged with a residual no id explains is a false alarm too: the
+        # issue's first complaint, and what short holds beside a lightly damped mode cause
+        # on clean twins (README, "Known limit"); the id figure above cannot see it.
+        BenchRecord("diagnosis_controls_without_mismatch",
+                    statistics.fmean(0.0 if t.doc.get("mismatch", True) else 1.0
                                      for t in controls),
                     "fraction", CONTROL_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_out_of_vocabulary_without_id",
