@@ -174,8 +174,9 @@ def measure() -> list[BenchRecord]:
         BenchRecord("diagnosis_controls_without_id", _share_without(controls, "effects"),
                     "fraction", CONTROL_TARGET, Goal.AT_LEAST),
         # A clean unit flagged with a residual no id explains is a false alarm too: the
-        # issue's first complaint, and what short holds beside a lightly damped mode cause
-        # on clean twins (README, "Known limit"); the id figure above cannot see it.
+        # issue's first complaint, and what short holds beside a lightly damped mode caused
+        # on clean twins until their ringing poles were measured (README, item 2); the id
+        # figure above cannot see it.
         BenchRecord("diagnosis_controls_without_mismatch", _share_without(controls, "mismatch"),
                     "fraction", CONTROL_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_out_of_vocabulary_without_id", _share_without(unnamed, "effects"),

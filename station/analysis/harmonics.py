@@ -109,11 +109,13 @@ def _separable(steady: NDArray[np.float64], decay: NDArray[np.float64]) -> NDArr
     return decay[:, kept]
 
 
-def _decay_design(t: NDArray[np.float64], poles: Sequence[complex]) -> NDArray[np.float64]:
-    """Columns e^{σt}·cos ωt and e^{σt}·sin ωt per pole σ + jω (only the first if real)."""
+def _decay_design(t: NDArray[np.float64], poles: Sequence[complex],
+                  double: Sequence[complex] = ()) -> NDArray[np.float64]:
+    """Columns e^{σt}·cos ωt and e^{σt}·sin ωt per pole σ + jω (only the first if real),
+    then the same times t for each pole of ``double``."""
     columns = []
-    for pole in poles:
-        envelope = np.exp(pole.real * t)
+    for pole, power in [(p, 0) for p in poles] + [(p, 1) for p in double]:
+        envelope = np.exp(pole.real * t) * t**power
         columns.append(envelope * np.cos(pole.imag * t))
         if pole.imag != 0.0:
             columns.append(envelope * np.sin(pole.imag * t))
@@ -160,6 +162,45 @@ def _white_variance(angle: NDArray[np.float64], y: NDArray[np.float64],
     return min(sigma2, float(residual @ residual) / float(used - wide.shape[1]))
 
 
+@dataclass(frozen=True)
+class SteadyProjection:
+    """A window's samples with its steady harmonics (DC and every order ``demodulate``
+    fits) projected out: what is left for a transient's decays to explain.
+
+    For measuring the decays' poles, where the same window is fitted at many trial poles:
+    the harmonics' part of the design never changes, so it is factored once and each
+    trial solves only for the decays. Every decay column is kept, even one the window
+    cannot tell from a harmonic (``SEPARABLE``), so that the residual moves smoothly with
+    the poles.
+    """
+
+    basis: NDArray[np.float64]  # (n, m) orthonormal columns spanning the harmonics
+    left: NDArray[np.float64]  # (n,) the samples less their projection on ``basis``
+    times: NDArray[np.float64]  # (n,) samples since the change the decays start at
+
+    @classmethod
+    def of(cls, signal: NDArray[np.float64], angle: NDArray[np.float64],
+           samples_per_period: float, decay_from: float) -> SteadyProjection:
+        nyquist = math.floor((samples_per_period - 1e-9) / 2)
+        ok = ~np.isnan(signal)
+        basis, _ = np.linalg.qr(_design(angle[ok], max(1, min(JOINT_ORDERS, nyquist))))
+        y = signal[ok]
+        return cls(basis, y - basis @ (basis.T @ y),
+                   (np.flatnonzero(ok) + decay_from).astype(np.float64))
+
+    @property
+    def columns(self) -> int:
+        return int(self.basis.shape[1])
+
+    def residual(self, decays: Sequence[complex]) -> NDArray[np.float64]:
+        """What the harmonics and ``decays`` (poles per sample) leave, sample by sample."""
+        d = _decay_design(self.times, decays)
+        d = d - self.basis @ (self.basis.T @ d)
+        coef, *_ = np.linalg.lstsq(d, self.left, rcond=None)
+        out: NDArray[np.float64] = self.left - d @ coef
+        return out
+
+
 def demodulate(
     signal: NDArray[np.float64],
     angle: NDArray[np.float64],
@@ -169,6 +210,7 @@ def demodulate(
     decays: Sequence[complex] = (),
     decay_from: float = 0.0,
     white_noise: bool = False,
+    uncertain: Sequence[complex] = (),
 ) -> Harmonics:
     """Least-squares phasors of orders 1..``orders`` referenced to ``angle``, fitted
     jointly with the orders up to ``JOINT_ORDERS``.
@@ -178,7 +220,10 @@ def demodulate(
     ``decays`` are poles per sample (λ·T, one of each conjugate pair) of a transient
     still ringing, whose change happened ``decay_from`` samples before the first:
     each is fitted with a free amplitude and phase, so it biases no phasor and costs
-    the precision it shares with them. ``white_noise`` finds ``noise_variance`` beyond
+    the precision it shares with them. ``uncertain`` are those of the ``decays`` whose
+    poles are only known to first order (measured, with an error): each is also fitted as
+    a double pole (t·e^{λt}), which takes up a small error in it, and the phasors pay for
+    what the pole's uncertainty costs them. ``white_noise`` finds ``noise_variance`` beyond
     every resolvable order (``_white_variance``): the diagnosis weighs each phasor by
     it, while calibration reads only ``variance`` and does not pay for the wider fit.
     """
@@ -192,7 +237,7 @@ def demodulate(
     x = _design(angle[ok], fitted)
     if decays:
         x = np.column_stack([x, _separable(x, _decay_design(
-            (np.flatnonzero(ok) + decay_from).astype(np.float64), decays))])
+            (np.flatnonzero(ok) + decay_from).astype(np.float64), decays, uncertain))])
     if used <= x.shape[1]:
         raise ValueError(f"{used} samples cannot determine {x.shape[1]} coefficients")
     y = signal[ok]

@@ -30,6 +30,7 @@ from station.analysis.harmonics import (
     period_phasors,
     phase_drift,
 )
+from station.analysis.ringing import refine_ringing
 from station.analysis.segments import (
     SETTLE_ORDERS,
     Rejected,
@@ -140,6 +141,8 @@ def measure(
     if not timeline.drive_reported:
         segments = [replace(seg, microsteps_per_sample=seg.microsteps_per_sample * (1 + d))
                     for seg, d in zip(segments, speed_errors(segments, signal), strict=True)]
+    if any(seg.ringing for seg in segments):
+        segments = refine_ringing(signal, segments)
     out: list[Measured] = []
     for seg in segments:
         try:

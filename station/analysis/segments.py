@@ -200,11 +200,16 @@ class Segment:
                   white_noise: bool = False) -> Harmonics:
         """``demodulate`` of the segment's samples ``window`` on its own angle, with the
         chain's ringing fitted out from the hold's change where it still rings."""
-        turn = 2j * math.pi / self.samples_per_period
-        sidebands = tuple(p + k * turn for p in self.ringing for k in SIDEBANDS)
         return demodulate(window, self.electrical_angle(), self.samples_per_period,
-                          orders=orders, decays=self.ringing + sidebands,
-                          decay_from=self.start - self.held_from, white_noise=white_noise)
+                          orders=orders, decays=self.decays(self.ringing),
+                          decay_from=self.start - self.held_from, white_noise=white_noise,
+                          uncertain=self.ringing)
+
+    def decays(self, ringing: tuple[complex, ...]) -> tuple[complex, ...]:
+        """The poles fitted out for ``ringing`` (per sample): each, and each shifted by the
+        ``SIDEBANDS`` orders of this segment's electrical frequency."""
+        turn = 2j * math.pi / self.samples_per_period
+        return ringing + tuple(p + k * turn for p in ringing for k in SIDEBANDS)
 
 
 @dataclass(frozen=True)
@@ -512,17 +517,24 @@ def steady_segments(
                         # A lightly damped mode rings on at orders the data test cannot
                         # watch closely enough; where the model says it needs longer, wait,
                         # and for a hard ring as long as the hold leaves three periods. Not
-                        # at the cost of the hold: a model that wants longer than the hold
-                        # leaves is not trusted over the data's own judgement, nor is its
-                        # ringing fitted out there (on a development disk that left a
-                        # coupling's trace for saturation; cut to three periods instead, a
-                        # rough clean disk, seed 2018362960, went from χ²/dof 1.4 to 5.7).
+                        # at the cost of the hold (cut to three periods, a rough clean
+                        # disk, seed 2018362960, went from χ²/dof 1.4 to 5.7): where the
+                        # model wants longer than the hold leaves, the modes still ringing
+                        # at the data's start are fitted out from there, at poles the
+                        # holds then measure (``station.analysis.ringing``; at the model's
+                        # own poles, a development disk had kept a coupling's trace).
                         floor = decay.settle_s() / period_s - (a - hold.start)
                         room = b - a - MIN_PERIODS * spp
                         if floor <= room:
                             floor = min(max(floor, longest / period_s - (a - hold.start)), room)
                             if skip < floor:
                                 skip, settling = floor, Settling.MODEL
+                        elif skip < floor:
+                            since_s = (a - hold.start + skip) * period_s
+                            ringing = tuple(p * period_s for p in decay.poles
+                                            if decay.e_foldings / -p.real > since_s)
+                            if ringing:
+                                settling = Settling.RINGING
             else:
                 skip = settle_periods * spp
             # Half a sample of slack: the fitted speed is off in its last digits, and a hold

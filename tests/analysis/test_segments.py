@@ -484,20 +484,35 @@ def test_a_hold_shorter_than_the_chains_decay_has_its_ringing_fitted_out() -> No
         window = run.signal[seg.start:seg.stop]
         fitted = seg.harmonics(window, orders=8)
         trims = _as_tuple(seg.trims)
-        assert abs(fitted.h(1) - h1_of(trims)) < 4 * sigma
-        assert abs(fitted.h(2) - h2_of(trims)) < 4 * sigma
+        # Within the uncertainty the fit reports. A pole known only to first order (a
+        # double one) costs order 2, 3 Hz from it over 0.2 s, three quarters of its
+        # precision: the price of a hold this short beside a mode.
+        assert abs(fitted.h(1) - h1_of(trims)) < 4 * math.sqrt(fitted.var(1))
+        assert abs(fitted.h(2) - h2_of(trims)) < 4 * math.sqrt(fitted.var(2))
+        assert math.sqrt(fitted.var(2)) < 5 * sigma
         # Left in, the ringing biases the phasors far beyond their noise (most at order
         # 2, 40 Hz, beside the mode).
         ignored = demodulate(window, seg.electrical_angle(), SPP)
         assert abs(ignored.h(2) - h2_of(trims)) > 10 * sigma
 
 
-def test_a_hold_the_data_judge_settled_keeps_the_datas_judgement() -> None:
+def test_a_hold_the_data_judge_settled_beside_a_mode_still_ringing_has_it_fitted_out() -> None:
     """Holds of 12 periods with the same ringing: the data take them as settled (orders 1
-    and 2 barely see a 37 Hz mode), and a model wanting 4.6 s is not trusted over them."""
+    and 2 barely see a 37 Hz mode), but the model wants 4.6 s and the hold leaves no room
+    to wait: the ringing is fitted out from where the data settled, and order 2 (40 Hz,
+    beside the mode), which the data's judgement alone leaves biased, comes out right."""
     run = _ringing_run(periods=12)
+    data, _ = steady_segments(run.timeline(), run.signal)
     segments, _ = steady_segments(run.timeline(), run.signal, settle_fallback=_belt_decay)
-    assert [(s.settling, s.ringing) for s in segments] == [(Settling.DATA, ())] * 5
+    assert [s.settling for s in segments] == [Settling.RINGING] * 5
+    assert [(s.start, s.stop) for s in segments] == [(s.start, s.stop) for s in data]
+
+    def worst(chosen: list[Segment]) -> float:
+        return max(abs(seg.harmonics(run.signal[seg.start:seg.stop], orders=8).h(2)
+                       - h2_of(_as_tuple(seg.trims))) for seg in chosen)
+
+    sigma = NOISE * math.sqrt(2 / (min(s.samples for s in data)))
+    assert worst(segments) < 4 * sigma < 10 * sigma < worst(data)
 
 
 def test_a_hold_too_short_for_a_fast_decay_waits_as_long_as_it_can() -> None:
@@ -586,24 +601,32 @@ def test_a_ringing_modulated_by_the_electrical_angle_is_fitted_out_with_its_side
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """A rotor whose spring swings with the electrical angle rings at the mode and beside it
-    at ± the electrical frequency: fitted at the mode alone, orders 1 and 2 are biased; with
-    the sidebands, not."""
+    at ± the electrical frequency: fitted at the mode alone, the sidebands are left as
+    seven times the noise and orders 1 and 2 lose five sixths of their precision; with
+    them, the phasors are right within the precision the noise allows."""
     run = _ringing_run()
     change = _since_change(run)
     angle = 2 * math.pi * change / (SPP * PERIOD_S)
     envelope = 0.3 * np.exp(-change / RING_TAU_S)
     run.signal += envelope * np.cos(2 * math.pi * RING_HZ * change + angle + 0.7)
     segments, _ = steady_segments(run.timeline(), run.signal, settle_fallback=_belt_decay)
-    sigma = NOISE * math.sqrt(2 / 200)
 
-    def worst() -> float:
-        return max(abs(seg.harmonics(run.signal[seg.start:seg.stop], orders=8).h(k)
-                       - (h1_of, h2_of)[k - 1](_as_tuple(seg.trims)))
-                   for seg in segments for k in (1, 2))
+    def worst() -> tuple[float, float, float]:
+        """The largest error of orders 1 and 2 in units of the σ the fit reports, that σ
+        for order 1, and the residual's rms."""
+        errors, sigma, left = [], 0.0, 0.0
+        for seg in segments:
+            h = seg.harmonics(run.signal[seg.start:seg.stop], orders=8)
+            errors += [abs(h.h(k) - (h1_of, h2_of)[k - 1](_as_tuple(seg.trims)))
+                       / math.sqrt(h.var(k)) for k in (1, 2)]
+            sigma, left = max(sigma, math.sqrt(h.var(1))), max(left, h.residual_rms)
+        return max(errors), sigma, left
 
-    assert worst() < 4 * sigma
+    error, sigma, left = worst()
+    assert error < 4 and left < 1.2 * NOISE
     monkeypatch.setattr("station.analysis.segments.SIDEBANDS", ())
-    assert worst() > 10 * sigma
+    _, alone, left = worst()
+    assert left > 5 * NOISE and alone > 5 * sigma
 
 
 def test_a_chain_decay_waits_for_every_mode_when_the_hold_allows_it() -> None:
