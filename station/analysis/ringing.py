@@ -60,16 +60,23 @@ def refine_ringing(signal: NDArray[np.float64], segments: list[Segment]) -> list
     out = list(segments)
     for members in groups.values():
         model = segments[members[0]].ringing
-        shared = measured_poles(signal, [segments[i] for i in members], model,
-                                RATE_RANGE, FREQUENCY_RANGE)
+        # Factored once per hold: the shared search and the hold's own both use it.
+        windows = {i: _projection(signal, segments[i]) for i in members}
+        shared = measured_poles([segments[i] for i in members], [windows[i] for i in members],
+                                model, RATE_RANGE, FREQUENCY_RANGE)
         if shared is None:
             continue  # rings too weakly to measure together, and so each hold alone
         for i in members:
             # Within a step of the shared poles' grid: searched from them alone.
-            own = measured_poles(signal, [segments[i]], shared, HOLD_RATE_RANGE,
+            own = measured_poles([segments[i]], [windows[i]], shared, HOLD_RATE_RANGE,
                                  HOLD_FREQUENCY_RANGE, grid=False)
             out[i] = replace(segments[i], ringing=own or shared)
     return out
+
+
+def _projection(signal: NDArray[np.float64], seg: Segment) -> SteadyProjection:
+    return SteadyProjection.of(signal[seg.start:seg.stop], seg.electrical_angle(),
+                               seg.samples_per_period, seg.start - seg.held_from)
 
 
 def _poles(model: tuple[complex, ...], x: NDArray[np.float64]) -> tuple[complex, ...]:
@@ -127,18 +134,16 @@ def _starts(model: tuple[complex, ...], low: NDArray[np.float64], samples: int
     return starts
 
 
-def measured_poles(signal: NDArray[np.float64], members: list[Segment],
+def measured_poles(members: list[Segment], windows: list[SteadyProjection],
                    model: tuple[complex, ...], rate_range: float, frequency_range: float,
                    *, grid: bool = True) -> tuple[complex, ...] | None:
-    """The ringing poles that ``members`` (holds of one operating point) share, searched
+    """The ringing poles that ``members`` (holds of one operating point, ``windows`` their
+    samples with the harmonics projected out) share, searched
     within ``rate_range`` (a factor) and ``frequency_range`` (a share) of ``model``, from
     ``model`` and, with ``grid``, from the best of a grid of frequencies; None where the
     data cannot tell them from ``model``."""
     if any(p.real >= 0.0 for p in model):
         return None  # a mode that does not decay has no rate to scale
-    windows = [SteadyProjection.of(signal[s.start:s.stop], s.electrical_angle(),
-                                   s.samples_per_period, s.start - s.held_from)
-               for s in members]
 
     def residual(x: NDArray[np.float64]) -> NDArray[np.float64]:
         poles = _poles(model, x)
