@@ -86,6 +86,18 @@ def _design(angle: NDArray[np.float64], orders: int) -> NDArray[np.float64]:
     return np.column_stack([np.ones_like(angle), np.cos(phase), np.sin(phase)])
 
 
+def _nyquist(samples_per_period: float) -> int:
+    """The highest order the sampling resolves without aliasing."""
+    return math.floor((samples_per_period - 1e-9) / 2)
+
+
+def _fitted_orders(orders: int, samples_per_period: float) -> int:
+    """Orders 1..n that ``demodulate`` fits for ``orders`` asked: at least the joint ones,
+    never beyond what the sampling resolves. ``SteadyProjection`` must project out the
+    same harmonics, or the poles it measures take up what ``demodulate`` fits."""
+    return max(1, min(max(orders, JOINT_ORDERS), _nyquist(samples_per_period)))
+
+
 SEPARABLE = 1e-2
 """Share of a decay column's norm that must lie outside the steady harmonics' columns for
 it to be fitted beside them. A ring slow enough to look steady over the window, at a
@@ -180,10 +192,10 @@ class SteadyProjection:
 
     @classmethod
     def of(cls, signal: NDArray[np.float64], angle: NDArray[np.float64],
-           samples_per_period: float, decay_from: float) -> SteadyProjection:
-        nyquist = math.floor((samples_per_period - 1e-9) / 2)
+           samples_per_period: float, decay_from: float, orders: int = DEFAULT_ORDERS
+           ) -> SteadyProjection:
         ok = ~np.isnan(signal)
-        basis, _ = np.linalg.qr(_design(angle[ok], max(1, min(JOINT_ORDERS, nyquist))))
+        basis, _ = np.linalg.qr(_design(angle[ok], _fitted_orders(orders, samples_per_period)))
         y = signal[ok]
         return cls(basis, y - basis @ (basis.T @ y),
                    (np.flatnonzero(ok) + decay_from).astype(np.float64))
@@ -229,8 +241,8 @@ def demodulate(
     """
     if signal.shape != angle.shape or signal.ndim != 1:
         raise ValueError(f"signal {signal.shape} and angle {angle.shape} must match (1-D)")
-    nyquist = math.floor((samples_per_period - 1e-9) / 2)
-    fitted = max(1, min(max(orders, JOINT_ORDERS), nyquist))
+    nyquist = _nyquist(samples_per_period)
+    fitted = _fitted_orders(orders, samples_per_period)
     kept = min(orders, fitted)
     ok = ~np.isnan(signal)
     used = int(ok.sum())

@@ -87,7 +87,8 @@ class ChainDecay:
     """The smallest transient worth waiting out (m/s² at the sensor, the noise of a
     segment's harmonics); 0: ``e_foldings`` whatever the change."""
 
-    def _seconds(self, pole: complex) -> float:
+    def seconds(self, pole: complex) -> float:
+        """Seconds until ``pole``'s mode has decayed by ``e_foldings``."""
         return self.e_foldings / -pole.real
 
     def kicked(self, kick_mps2: float, since_s: float = 0.0) -> ChainDecay:
@@ -117,7 +118,7 @@ class ChainDecay:
 
     def settle_s(self) -> float:
         """Seconds until every mode has decayed."""
-        return max([self.floor_s, *(self._seconds(p) for p in self.poles)])
+        return max([self.floor_s, *(self.seconds(p) for p in self.poles)])
 
     def plan(self, available_s: float, needed_s: float) -> tuple[float, tuple[complex, ...]]:
         """Seconds to wait after the change, and the poles to fit out as still ringing.
@@ -126,9 +127,9 @@ class ChainDecay:
         ``needed_s`` of the ``available_s``, the slowest modes are fitted out, as few as
         leave enough (all of them at the worst, after ``floor_s``).
         """
-        slowest_first = sorted(self.poles, key=self._seconds, reverse=True)
+        slowest_first = sorted(self.poles, key=self.seconds, reverse=True)
         for n in range(len(slowest_first) + 1):
-            wait = max([self.floor_s, *(self._seconds(p) for p in slowest_first[n:])])
+            wait = max([self.floor_s, *(self.seconds(p) for p in slowest_first[n:])])
             if available_s - wait >= needed_s or n == len(slowest_first):
                 return wait, tuple(slowest_first[:n])
         raise AssertionError("unreachable: the last plan fits every pole")
@@ -532,7 +533,7 @@ def steady_segments(
                         elif skip < floor:
                             since_s = (a - hold.start + skip) * period_s
                             ringing = tuple(p * period_s for p in decay.poles
-                                            if decay.e_foldings / -p.real > since_s)
+                                            if decay.seconds(p) > since_s)
                             if ringing:
                                 settling = Settling.RINGING
             else:

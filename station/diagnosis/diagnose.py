@@ -44,6 +44,7 @@ carry over to recordings from other benches and simulators.
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import math
 import multiprocessing
@@ -735,8 +736,10 @@ def settle_fallback(nominal: Fit) -> SettleFallback:
     # What a segment's harmonics resolve: a transient below it is not worth waiting out.
     resolution = float(np.median(model.obs.noise))
 
-    def settle(amplitude_mA: int, electrical_hz: float) -> ChainDecay | None:
-        angle, spring = conditions.get((amplitude_mA, round(electrical_hz, 1)), (0.0, None))
+    @functools.cache
+    def by_condition(amplitude_mA: int, electrical_hz: float) -> ChainDecay | None:
+        # Every hold of a condition asks: its chain's modes are found once.
+        angle, spring = conditions.get((amplitude_mA, electrical_hz), (0.0, None))
         modes = [(f, z) for f, z in model.modes(nominal.params, amplitude_mA / 1000.0,
                                                 angle, spring)
                  if 0 < f <= top]
@@ -746,6 +749,9 @@ def settle_fallback(nominal: Fit) -> SettleFallback:
             return None
         poles = tuple(_pole(f, z) for f, z in modes)
         return ChainDecay(poles, SETTLE_E_FOLDINGS, RINGING_FLOOR_S, resolution)
+
+    def settle(amplitude_mA: int, electrical_hz: float) -> ChainDecay | None:
+        return by_condition(amplitude_mA, round(electrical_hz, 1))
 
     return settle
 
