@@ -172,6 +172,9 @@ class Segment:
     ringing: tuple[complex, ...] = ()
     """Poles still ringing at ``start``, per sample (λ·T): decays from ``held_from`` to fit
     out beside the harmonics."""
+    drift: float = 0.0
+    """How fast the ringing's frequencies move over the hold, as a share of each per
+    sample (measured: ``station.analysis.ringing``)."""
 
     @property
     def samples(self) -> int:
@@ -204,13 +207,23 @@ class Segment:
         return demodulate(window, self.electrical_angle(), self.samples_per_period,
                           orders=orders, decays=self.decays(self.ringing),
                           decay_from=self.start - self.held_from, white_noise=white_noise,
-                          uncertain=self.ringing)
+                          uncertain=self.ringing, sweeps=self.sweeps(self.ringing, self.drift))
 
     def decays(self, ringing: tuple[complex, ...]) -> tuple[complex, ...]:
         """The poles fitted out for ``ringing`` (per sample): each, and each shifted by the
         ``SIDEBANDS`` orders of this segment's electrical frequency."""
         turn = 2j * math.pi / self.samples_per_period
         return ringing + tuple(p + k * turn for p in ringing for k in SIDEBANDS)
+
+    @staticmethod
+    def sweeps(ringing: tuple[complex, ...], drift: float) -> tuple[float, ...]:
+        """Per decay of ``decays(ringing)``, how fast its frequency moves (rad/sample²)
+        when each mode's own moves by ``drift`` of itself per sample: its sidebands ride
+        on the mode and move with it."""
+        if not drift:
+            return ()
+        own = tuple(drift * p.imag for p in ringing)
+        return own + tuple(c for c in own for _ in SIDEBANDS)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ import math
 import numpy as np
 import pytest
 
+from station.analysis import ringing
 from station.analysis.ringing import refine_ringing
 from station.analysis.segments import ChainDecay, Segment, Settling, steady_segments
 from tests.analysis.test_segments import (
@@ -20,7 +21,9 @@ from tests.analysis.test_segments import (
     RING_TAU_S,
     Run,
     _as_tuple,
+    _offset_sweep,
     _rung,
+    _since_change,
     h2_of,
 )
 
@@ -63,9 +66,46 @@ def test_each_holds_ringing_pole_is_measured_and_its_phasors_come_out_right() ->
         # Holds of a quarter of the decay time tell its rate only roughly (here 23 % fast
         # of the truth), but on the true side of the model's.
         assert abs(MODEL.real) > abs(pole.real / PERIOD_S) > 0.5 * abs(TRUE.real)
+        # A ring of one frequency is measured as one: it moves by under 0.3 % of itself.
+        assert abs(seg.drift) * (seg.stop - seg.held_from) < 3e-3
     # At the model's pole, order 2 is off far beyond the uncertainty the fit reports.
     assert _worst_h2_error(run, measured) < 4
     assert _worst_h2_error(run, model) > 10
+
+
+DRIFTS = (0.04, -0.03, 0.05, -0.05, 0.02)
+"""How far each hold's ringing frequency moves over the hold, as a share: an eccentric
+rotor's spring changes as it turns, and each hold stands on its own part of the turn."""
+
+
+def _chirped() -> Run:
+    """The run of ``_rung`` with each hold's ring a chirp: its frequency moving by that
+    hold's share of ``DRIFTS`` from the change to the hold's end."""
+    run = _offset_sweep(tau_s=0.0, periods=5, ring=0.0)
+    change = _since_change(run)
+    for (a, b), drift in zip(zip(run.bounds, run.bounds[1:], strict=False), DRIFTS,
+                             strict=True):
+        t = change[a:b]
+        sweep = drift * TRUE.imag / ((b - a) * PERIOD_S)
+        run.signal[a:b] += 0.3 * np.exp(TRUE.real * t) * np.cos(TRUE.imag * t
+                                                                + 0.5 * sweep * t * t)
+    return run
+
+
+def test_a_ring_whose_frequency_moves_over_the_hold_is_measured_as_a_chirp(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    run = _chirped()
+    measured = refine_ringing(run.signal, _segments(run))
+    for seg, drift in zip(measured, DRIFTS, strict=True):
+        # Over a fifth of the decay time a chirp trades for the decay rate: roughly.
+        assert seg.drift * (seg.stop - seg.held_from) == pytest.approx(drift, rel=0.3)
+    assert _worst_h2_error(run, measured) < 2.5
+    # Measured as rings of one frequency each (their error to first order taken up by
+    # the double poles), order 2 comes out several times as far off.
+    monkeypatch.setattr(ringing, "HOLD_DRIFT_RANGE", 0.0)
+    steady = refine_ringing(run.signal, _segments(run))
+    assert all(s.drift == 0.0 for s in steady)
+    assert _worst_h2_error(run, steady) > 3.5
 
 
 def test_without_ringing_to_measure_the_models_pole_is_kept() -> None:
