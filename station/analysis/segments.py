@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
@@ -419,84 +419,6 @@ KICK_VISIBLE = 10.0
 that is taken as ringing rather than the scatter of single periods."""
 
 
-_TURN_SIGNIFICANCE = 4.0
-"""Standard errors a hold's steady turn must exceed before it is taken out."""
-_TURN_PERIODS = 8
-"""Periods a turn is measured over, at least: each order's line has its σ from its own
-scatter, and over four periods (two degrees of freedom) three of those σ came by chance
-one time in ten; a test's hold of 8 periods then lost two periods to a turn that was
-noise."""
-_TURN_AGREEMENT = 9.0
-"""χ² per degree of freedom within which the orders' turns must agree (in proportion to
-the order) to be one clock's."""
-
-
-def without_steady_turn(per_period: NDArray[np.complex128], orders: Sequence[int]
-                        ) -> NDArray[np.complex128]:
-    """Per-period phasors with a turn that grows steadily in proportion to the order taken
-    out, measured on the hold's second half (where a change has most nearly settled).
-
-    A sensor whose clock runs apart from the SYNC takes each SYNC's sample a little later
-    (or earlier) than the one before, so over a hold the ripple's phasors turn as if the
-    speed were off by the clock's error: benchmark trial sensor_clock_drift@1819040141
-    (303 ppm) turned order 2 at 37 Hz by 0.06 rad over a hold of 0.53 s, far beyond its
-    noise, and the settling test took all 13 of its fastest holds for a rotor that never
-    settled. The turn says nothing of settling; the clock's delay is the diagnosis's to
-    fit.
-    """
-    half = per_period[per_period.shape[0] // 2:]
-    if half.shape[0] < _TURN_PERIODS or not orders:
-        return per_period
-    turn, sigma = _steady_turn(half, orders)
-    if not math.isfinite(sigma) or abs(turn) <= _TURN_SIGNIFICANCE * sigma:
-        return per_period
-    periods = np.arange(per_period.shape[0], dtype=np.float64)
-    out: NDArray[np.complex128] = per_period * np.exp(
-        -2j * math.pi * turn * np.outer(periods, np.asarray(orders, dtype=np.float64)))
-    return out
-
-
-def _steady_turn(per_period: NDArray[np.complex128], orders: Sequence[int]
-                 ) -> tuple[float, float]:
-    """The turn per period of order 1 that the phasors share (each order k turning k times
-    as fast), and its standard error; σ infinite where nothing could be measured.
-
-    Each order's phase is taken against its median phasor and fitted by a straight line
-    over the periods (a period that lost samples or clipped is left out: its phasor lies
-    far from the median); the orders are pooled by the lines' precision. Not Rayleigh's
-    test of ``phase_drift``, which asks whether noise turns one way: a strong phasor
-    turning slowly passes it only with more periods than a hold has.
-    """
-    n = per_period.shape[0]
-    x = np.arange(n, dtype=np.float64)
-    turns: list[tuple[float, float]] = []
-    for j, k in enumerate(orders):
-        z = per_period[:, j]
-        centre = _complex_median(z[:, None])[0]
-        if centre == 0:
-            continue
-        deviation = np.abs(z - centre)
-        keep = deviation <= 5.0 * (np.median(deviation) + 1e-12)
-        if keep.sum() < 3:
-            continue
-        phase = np.angle(z[keep] / centre)
-        slope, intercept = np.polyfit(x[keep], phase, 1)
-        scatter = phase - (slope * x[keep] + intercept)
-        spread = float(np.sqrt(np.sum(scatter**2) / max(1, int(keep.sum()) - 2)))
-        leverage = float(np.sum((x[keep] - x[keep].mean()) ** 2))
-        error = max(spread / math.sqrt(leverage), 1e-9) / (2 * math.pi * k)
-        turns.append((slope / (2 * math.pi * k), error))
-    if len(turns) < 2:
-        return 0.0, math.inf  # one order cannot show that the turn grows with the order
-    information = sum(1.0 / e**2 for _, e in turns)
-    estimate = sum(t / e**2 for t, e in turns) / information
-    # A clock turns every order by the same time; a transient's phases move as its own
-    # shape says. Orders that disagree are no clock.
-    if sum(((t - estimate) / e) ** 2 for t, e in turns) > _TURN_AGREEMENT * (len(turns) - 1):
-        return 0.0, math.inf
-    return estimate, 1.0 / math.sqrt(information)
-
-
 @dataclass(frozen=True)
 class Rejected:
     """A steady stretch that could not be used, and why (for the report)."""
@@ -560,8 +482,7 @@ def steady_segments(
                 window, present = signal[a:b], ok[a:b]
                 centred = np.where(present, window - np.mean(window[present]), 0.0)
                 usable = tuple(k for k in settle_orders if 2 * k < spp)
-                phasors = without_steady_turn(
-                    period_phasors(centred, present, angle, spp, usable), usable)
+                phasors = period_phasors(centred, present, angle, spp, usable)
                 first = settled_period(phasors)
                 held = (b - a) / spp
                 too_short = held < 2 * _SETTLE_BLOCK

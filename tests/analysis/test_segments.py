@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from station.analysis import segments as segments_module
 from station.analysis.harmonics import demodulate
 from station.analysis.segments import (
     MIN_PERIODS,
@@ -29,7 +28,6 @@ from station.analysis.segments import (
     position_glitches,
     settled_period,
     steady_segments,
-    without_steady_turn,
 )
 from station.analysis.timeline import LossReport, Timeline, unwrap_int32
 from station.core import Trims
@@ -702,43 +700,3 @@ def test_settled_period_refuses_a_trend_that_lasts_to_the_end() -> None:
         trend = (slope * k) * np.array([1.0, 1.0])
         assert settled_period(_per_period(rng, trend.astype(np.complex128))) is None, slope
     assert settled_period(_per_period(rng, np.zeros((5, 2), np.complex128))) is None  # too short
-
-
-def _clock_apart(run: Run, ppm: float) -> Run:
-    """``run`` as a sensor whose clock runs ``ppm`` slow of the SYNC sees it: each SYNC's
-    sample taken that much later than the one before (no wrap within the run)."""
-    late = 2 * math.pi / SPP * ppm * 1e-6 * np.arange(run.signal.size)
-    h1 = np.array([h1_of(t) for t in run.trims])
-    h2 = np.array([h2_of(t) for t in run.trims])
-    rng = np.random.default_rng(run.seed)
-    run.signal = (np.real(h1 * np.exp(1j * (run.angle - late)))
-                  + np.real(h2 * np.exp(2j * (run.angle - late)))
-                  + rng.normal(0.0, run.noise, late.size))
-    return run
-
-
-def test_a_sensor_clock_apart_from_the_sync_is_not_taken_for_a_rotor_still_settling(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    run = _clock_apart(_offset_sweep(tau_s=0.0, periods=40, ring=0.0), ppm=1000.0)
-    segments, rejected = steady_segments(run.timeline(), run.signal)
-    assert rejected == [] and len(segments) == 5
-    # Judged on the phasors as they turn, the same holds never settle.
-    monkeypatch.setattr(segments_module, "without_steady_turn", lambda z, orders: z)
-    _, turned = steady_segments(run.timeline(), run.signal)
-    assert turned
-
-
-def test_a_transient_that_turns_one_order_alone_is_not_taken_for_a_clock() -> None:
-    periods = np.arange(20, dtype=np.float64)
-    rng = np.random.default_rng(3)
-    noise = 1e-3 * (rng.normal(size=(20, 2)) + 1j * rng.normal(size=(20, 2)))
-    # Order 1 turns steadily, order 2 stays: no clock does that.
-    z = np.column_stack([np.exp(0.01j * periods), 0.5 * np.ones(20)]).astype(np.complex128)
-    z += noise
-    assert np.array_equal(without_steady_turn(z, (1, 2)), z)
-    # Order 2 turning twice as fast is a clock's turn, and is taken out.
-    clock = np.column_stack([np.exp(0.01j * periods), 0.5 * np.exp(0.02j * periods)]
-                            ).astype(np.complex128)
-    clock += noise
-    level = without_steady_turn(clock, (1, 2))
-    assert np.allclose(level[:, 0], level[0, 0], atol=0.01)
