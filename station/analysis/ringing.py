@@ -107,29 +107,25 @@ def _projection(signal: NDArray[np.float64], seg: Segment) -> SteadyProjection:
                                seg.samples_per_period, seg.start - seg.held_from)
 
 
-def _poles(model: tuple[complex, ...], x: NDArray[np.float64]) -> tuple[complex, ...]:
-    """The poles ``x`` describes: per pole the log of its rate's factor on the model's, then
-    (for a ringing pole) the log of its frequency's."""
-    out = []
+def _layout(model: tuple[complex, ...]) -> list[tuple[int, int | None]]:
+    """Where each pole of ``model`` sits among the searched parameters: the index of the
+    log of its rate's factor on the model's and, for a ringing pole, of its frequency's
+    (None for a pole that does not ring). The pole search, its bounds and its grid all
+    read it, so they cannot disagree on the order."""
+    out: list[tuple[int, int | None]] = []
     j = 0
     for pole in model:
-        rate = pole.real * math.exp(float(x[j]))
-        j += 1
-        frequency = 0.0
-        if pole.imag != 0.0:
-            frequency = pole.imag * math.exp(float(x[j]))
-            j += 1
-        out.append(complex(rate, frequency))
-    return tuple(out)
-
-
-def _rates(model: tuple[complex, ...]) -> list[int]:
-    """Where each pole's rate sits among the searched parameters (``_poles``)."""
-    out, j = [], 0
-    for pole in model:
-        out.append(j)
-        j += 1 + (pole.imag != 0.0)
+        rings = pole.imag != 0.0
+        out.append((j, j + 1 if rings else None))
+        j += 1 + rings
     return out
+
+
+def _poles(model: tuple[complex, ...], x: NDArray[np.float64]) -> tuple[complex, ...]:
+    """The poles ``x`` describes (``_layout``)."""
+    return tuple(complex(pole.real * math.exp(float(x[r])),
+                         0.0 if f is None else pole.imag * math.exp(float(x[f])))
+                 for pole, (r, f) in zip(model, _layout(model), strict=True))
 
 
 SEARCH_TOLERANCE = 1e-5
@@ -157,17 +153,14 @@ def _starts(model: tuple[complex, ...], low: NDArray[np.float64], samples: int
     within 3 σ.
     """
     starts = [np.zeros(low.size)]
-    j = 0
-    for pole in model:
-        j += 1
-        if pole.imag == 0.0:
+    for pole, (_, f) in zip(model, _layout(model), strict=True):
+        if f is None:
             continue
         step = 0.25 * (2 * math.pi / samples) / abs(pole.imag)
-        for offset in np.arange(low[j], -low[j], step)[1:]:
+        for offset in np.arange(low[f], -low[f], step)[1:]:
             x = np.zeros(low.size)
-            x[j] = offset
+            x[f] = offset
             starts.append(x)
-        j += 1
     return starts
 
 
@@ -198,12 +191,17 @@ def measured_poles(members: list[Segment], windows: list[SteadyProjection],
 
     def residual(x: NDArray[np.float64]) -> NDArray[np.float64]:
         r = ring(x)
-        return np.concatenate([w.residual(s.decays(r.poles), Segment.sweeps(r.poles, r.drift))
+        return np.concatenate([w.residual(*s.decays(r.poles, r.drift))
                                for s, w in zip(members, windows, strict=True)])
 
-    low = np.array([-math.log(rate_range) if j == 0 else math.log1p(-frequency_range)
-                    for p in model for j in range(1 + (p.imag != 0.0))]
-                   + ([-drift_range] if drifts else []))
+    layout = _layout(model)
+    low = np.zeros(sum(1 + (f is not None) for _, f in layout) + drifts)
+    for r, f in layout:
+        low[r] = -math.log(rate_range)
+        if f is not None:
+            low[f] = math.log1p(-frequency_range)
+    if drifts:
+        low[-1] = -drift_range
     size = low.size
     before = residual(np.zeros(size))
     fits = []
@@ -224,12 +222,12 @@ def measured_poles(members: list[Segment], windows: list[SteadyProjection],
     fit = min(fits, key=lambda f: float(f.cost))
     after = fit.fun
     # Each hold fits its harmonics and both parts of every decay.
-    columns = sum(w.columns + 2 * len(s.decays(model))
+    columns = sum(w.columns + 2 * len(s.decays(model)[0])
                   for s, w in zip(members, windows, strict=True))
     dof = sum(w.left.size for w in windows) - columns - size
     bounds = fit.active_mask != 0
     if rate_prior:
-        bounds[_rates(model)] = False
+        bounds[[r for r, _ in layout]] = False
     if dof <= 0 or fit.status < 0 or np.any(bounds):
         # At a bound the data want another mode than the model's: not this one's pole.
         return None

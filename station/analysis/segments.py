@@ -204,26 +204,24 @@ class Segment:
                   white_noise: bool = False) -> Harmonics:
         """``demodulate`` of the segment's samples ``window`` on its own angle, with the
         chain's ringing fitted out from the hold's change where it still rings."""
+        poles, sweeps = self.decays(self.ringing, self.drift)
         return demodulate(window, self.electrical_angle(), self.samples_per_period,
-                          orders=orders, decays=self.decays(self.ringing),
+                          orders=orders, decays=poles,
                           decay_from=self.start - self.held_from, white_noise=white_noise,
-                          uncertain=self.ringing, sweeps=self.sweeps(self.ringing, self.drift))
+                          uncertain=self.ringing, sweeps=sweeps)
 
-    def decays(self, ringing: tuple[complex, ...]) -> tuple[complex, ...]:
+    def decays(self, ringing: tuple[complex, ...], drift: float = 0.0
+               ) -> tuple[tuple[complex, ...], tuple[float, ...]]:
         """The poles fitted out for ``ringing`` (per sample): each, and each shifted by the
-        ``SIDEBANDS`` orders of this segment's electrical frequency."""
+        ``SIDEBANDS`` orders of this segment's electrical frequency; and, when each mode's
+        frequency moves by ``drift`` of itself per sample, how fast each pole's moves
+        (rad/sample², empty when none does). A sideband rides on its mode and moves with it,
+        so both lists are built together and stay in step."""
         turn = 2j * math.pi / self.samples_per_period
-        return ringing + tuple(p + k * turn for p in ringing for k in SIDEBANDS)
-
-    @staticmethod
-    def sweeps(ringing: tuple[complex, ...], drift: float) -> tuple[float, ...]:
-        """Per decay of ``decays(ringing)``, how fast its frequency moves (rad/sample²)
-        when each mode's own moves by ``drift`` of itself per sample: its sidebands ride
-        on the mode and move with it."""
-        if not drift:
-            return ()
-        own = tuple(drift * p.imag for p in ringing)
-        return own + tuple(c for c in own for _ in SIDEBANDS)
+        pairs = [(p, drift * p.imag) for p in ringing] + [
+            (p + k * turn, drift * p.imag) for p in ringing for k in SIDEBANDS]
+        return (tuple(p for p, _ in pairs),
+                tuple(c for _, c in pairs) if drift else ())
 
 
 @dataclass(frozen=True)
