@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from station.analysis import segments as segments_module
 from station.analysis.harmonics import demodulate
 from station.analysis.segments import (
     MIN_PERIODS,
@@ -26,6 +27,7 @@ from station.analysis.segments import (
     constant_velocity_runs,
     holds,
     position_glitches,
+    sensor_clock,
     settled_period,
     steady_segments,
 )
@@ -700,3 +702,71 @@ def test_settled_period_refuses_a_trend_that_lasts_to_the_end() -> None:
         trend = (slope * k) * np.array([1.0, 1.0])
         assert settled_period(_per_period(rng, trend.astype(np.complex128))) is None, slope
     assert settled_period(_per_period(rng, np.zeros((5, 2), np.complex128))) is None  # too short
+
+
+CLOCK_PPM = 500.0
+"""A sensor clock off by 500 ppm: over a 40-period hold every order turns by 2πk·0.02."""
+
+
+def _clocked(pieces: Sequence[Piece], rates: Sequence[float]
+             ) -> tuple[Timeline, NDArray[np.float64]]:
+    """A run whose sensor, in piece i, samples ever later by ``rates[i]`` of the SYNC
+    period per SYNC (a sensor's own clock), with low noise so that the turn shows."""
+    run = Run(pieces, noise=0.0)
+    velocity = np.concatenate([np.full(p.samples, p.v0) for p in pieces])
+    travel = np.concatenate([[0.0], np.cumsum(velocity[1:])])
+    n = np.arange(travel.size, dtype=np.float64)
+    instant = n.copy()
+    for (a, b), rate in zip(itertools.pairwise(run.bounds), rates, strict=True):
+        instant[a:b] = a + (n[a:b] - a) * (1.0 + rate)
+    angle = 2 * math.pi * np.interp(instant, n, travel) / CYCLE
+    h1 = np.array([h1_of(t) for t in run.trims])
+    h2 = np.array([h2_of(t) for t in run.trims])
+    noise = np.random.default_rng(5).normal(0.0, 0.002, n.size)
+    signal = np.real(h1 * np.exp(1j * angle)) + np.real(h2 * np.exp(2j * angle)) + noise
+    return run.timeline(), signal
+
+
+def _both_ways() -> list[Piece]:
+    return [steady(40, (o, 0, 10000, 10000), v) for v in (V20, -V20) for o in (-200, 0, 200)]
+
+
+def test_holds_a_sensor_clock_turns_alike_are_judged_settled_with_the_turn_taken_out(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A sensor stamping samples by its own clock makes every hold's phasors turn
+    steadily, in both directions: the rotor has settled, the time base has not.
+    Judged as they are, all six holds are refused (sensor_clock_drift@1819040141: 13 of
+    48 refused, and the clock never named)."""
+    pieces = _both_ways()
+    timeline, signal = _clocked(pieces, [CLOCK_PPM * 1e-6] * len(pieces))
+    segments, rejected = steady_segments(timeline, signal, settle_orders=(1, 2))
+    assert rejected == [] and len(segments) == len(pieces)
+    assert all(s.settling is Settling.DATA for s in segments)
+    monkeypatch.setattr(segments_module, "clock_rate", lambda turns: 0.0)
+    segments, rejected = steady_segments(timeline, signal, settle_orders=(1, 2))
+    assert segments == []
+    assert {r.reason for r in rejected} == {"the rotor did not settle within the hold"}
+
+
+def test_a_hold_that_turns_alone_is_not_taken_for_a_clock() -> None:
+    """One hold turning its own way is that hold's transient, not the time base: the
+    others keep it from being taken out, and it is still refused."""
+    pieces = _both_ways()
+    rates = [0.0] * len(pieces)
+    rates[2] = CLOCK_PPM * 1e-6
+    timeline, signal = _clocked(pieces, rates)
+    segments, rejected = steady_segments(timeline, signal, settle_orders=(1, 2))
+    assert len(segments) == len(pieces) - 1
+    assert [(r.start, r.reason) for r in rejected] == [
+        (rejected[0].start, "the rotor did not settle within the hold")]
+    bounds = np.cumsum([0, *(p.samples for p in pieces)])
+    assert bounds[2] <= rejected[0].start < bounds[3]
+
+
+@pytest.mark.parametrize("ppm", [-800.0, 300.0])
+def test_a_clock_is_measured_from_the_turns_of_every_hold(ppm: float) -> None:
+    """The pooled rate is the clock's, signed to time, not to the direction of rotation."""
+    timeline, signal = _clocked(_both_ways(), [ppm * 1e-6] * 6)
+    assert sensor_clock(timeline, signal) == pytest.approx(ppm * 1e-6, rel=0.05)
+    assert segments_module.clock_rate([(0.0, 1e-5)] * 6) == 0.0
+    assert segments_module.clock_rate([(1e-3, 1e-5)] * 2) == 0.0  # two holds are no clock
