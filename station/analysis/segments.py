@@ -357,6 +357,15 @@ def _complex_median(z: NDArray[np.complex128], axis: int = 0) -> NDArray[np.comp
     return out
 
 
+def _period_spread(per_period: NDArray[np.complex128]) -> NDArray[np.float64]:
+    """Each order's robust spread of one period's phasor, from period-to-period differences,
+    which a slow trend barely touches: 1.4826·median|z[k+1] − z[k]|/√2 is about 1.74 σ for
+    circular Gaussian scatter."""
+    steps = np.abs(np.diff(per_period, axis=0))
+    out: NDArray[np.float64] = 1.4826 * np.median(steps, axis=0) / math.sqrt(2.0) + 1e-12
+    return out
+
+
 def settled_period(per_period: NDArray[np.complex128]) -> int | None:
     """Index of the first period from which the phasors stay at their final level.
 
@@ -372,10 +381,7 @@ def settled_period(per_period: NDArray[np.complex128]) -> int | None:
         return None
     tail = per_period[periods // 2 :]
     reference = _complex_median(tail)
-    # Noise from period-to-period differences, which a slow trend barely touches:
-    # 1.4826·median|z[k+1] − z[k]|/√2 is about 1.74 σ for circular Gaussian scatter.
-    steps = np.abs(np.diff(per_period, axis=0))
-    spread = 1.4826 * np.median(steps, axis=0) / math.sqrt(2.0) + 1e-12
+    spread = _period_spread(per_period)
     quarter = tail.shape[0] // 2
     if quarter >= _SETTLE_BLOCK:
         drift = np.abs(_complex_median(tail[:quarter]) - _complex_median(tail[quarter:]))
@@ -419,8 +425,7 @@ def _tail_turn(per_period: NDArray[np.complex128], orders: tuple[int, ...]
     if tail.shape[0] < 2 * _SETTLE_BLOCK:
         return 0.0, math.inf
     reference = _complex_median(tail)
-    steps = np.abs(np.diff(per_period, axis=0))
-    spread = 1.4826 * np.median(steps, axis=0) / math.sqrt(2.0) + 1e-12
+    spread = _period_spread(per_period)
     width = max(1, tail.shape[0] // _CLOCK_BLOCKS)
     blocks = tail.shape[0] // width
     periods = (np.arange(blocks) + 0.5) * width
