@@ -31,6 +31,7 @@ the figures a note quotes come from the default.
 
 from __future__ import annotations
 
+import functools
 import os
 import statistics
 import sys
@@ -116,6 +117,15 @@ def _result(case: Case, future: Future[Trial]) -> Trial:
         raise RuntimeError(f"the diagnosis of trial {case.label} crashed") from exc
 
 
+def _progress(case: Case, future: Future[Trial]) -> None:
+    """One line per trial as it finishes: an hour's run that is stopped early still
+    leaves what it measured."""
+    if future.exception() is None:
+        trial = future.result()
+        print(f"trial {case.label}: score {trial.score:.2f} in {trial.diagnose_s:.1f} s",
+              file=sys.stderr, flush=True)
+
+
 def _answer(doc: dict[str, Any]) -> tuple[Any, ...]:
     """What a diagnosis concluded: its ids with their rivals, the mismatch, a refusal."""
     if REFUSED in doc:
@@ -136,6 +146,8 @@ def measure() -> list[BenchRecord]:
     with tempfile.TemporaryDirectory(prefix="bench-diagnosis-") as tmp:
         with ProcessPoolExecutor(max_workers=2) as pool:
             futures = [pool.submit(run_trial, case, Path(tmp)) for case in drawn]
+            for case, future in zip(drawn, futures, strict=True):
+                future.add_done_callback(functools.partial(_progress, case))
             trials = [_result(case, future) for case, future in zip(drawn, futures, strict=True)]
         alone = _alone(trials, Path(tmp))
     wall_min = (time.perf_counter() - started) / 60.0
