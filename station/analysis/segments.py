@@ -148,6 +148,15 @@ SettleFallback = Callable[[int, float], ChainDecay | None]
 (a mode that does not decay)."""
 
 
+def _electrical_angle(position0: float, slope: float, samples: int, microsteps_per_fullstep: int
+                      ) -> NDArray[np.float64]:
+    """ICD.md §2: x_u = 2π·(position mod 4m)/(4m) along a fitted line of the demand."""
+    cycle = 4 * microsteps_per_fullstep
+    position = position0 + slope * np.arange(samples, dtype=np.float64)
+    out: NDArray[np.float64] = (2 * math.pi / cycle) * np.mod(position, cycle)
+    return out
+
+
 @dataclass(frozen=True)
 class Segment:
     """Samples [start, stop) of one steady condition, a whole number of periods long.
@@ -194,11 +203,8 @@ class Segment:
         return 4 * self.microsteps_per_fullstep / abs(self.microsteps_per_sample)
 
     def electrical_angle(self) -> NDArray[np.float64]:
-        """ICD.md §2: x_u = 2π·(position mod 4m)/(4m) at every sample of the segment."""
-        cycle = 4 * self.microsteps_per_fullstep
-        n = np.arange(self.samples, dtype=np.float64)
-        position = self.position0 + self.microsteps_per_sample * n
-        return (2 * math.pi / cycle) * np.mod(position, cycle)
+        return _electrical_angle(self.position0, self.microsteps_per_sample, self.samples,
+                                 self.microsteps_per_fullstep)
 
     def harmonics(self, window: NDArray[np.float64], orders: int, *,
                   white_noise: bool = False) -> Harmonics:
@@ -541,6 +547,7 @@ class _Run:
     slope: float  # microsteps per sample, signed
     hz: float  # electrical, unsigned
     samples_per_period: float
+    microsteps_per_fullstep: int
 
     @property
     def direction(self) -> float:
@@ -551,20 +558,14 @@ class _Run:
         """Those of ``wanted`` the run's sampling resolves."""
         return tuple(k for k in wanted if 2 * k < self.samples_per_period)
 
-    def angle(self, cycle: int) -> NDArray[np.float64]:
-        n = np.arange(self.stop - self.start, dtype=np.float64)
-        out: NDArray[np.float64] = (2 * math.pi / cycle) * np.mod(
-            self.position0 + self.slope * n, cycle)
-        return out
-
     def phasors(self, signal: NDArray[np.float64], ok: NDArray[np.bool_],
-                orders: tuple[int, ...], cycle: int) -> NDArray[np.complex128]:
-        """Per-period phasors of ``orders`` (``period_phasors``), ``cycle`` microsteps to
-        an electrical period."""
+                orders: tuple[int, ...]) -> NDArray[np.complex128]:
+        """Per-period phasors of ``orders`` (``period_phasors``)."""
         window, present = signal[self.start:self.stop], ok[self.start:self.stop]
         centred = np.where(present, window - np.mean(window[present]), 0.0)
-        return period_phasors(centred, present, self.angle(cycle), self.samples_per_period,
-                              orders)
+        angle = _electrical_angle(self.position0, self.slope, self.stop - self.start,
+                                  self.microsteps_per_fullstep)
+        return period_phasors(centred, present, angle, self.samples_per_period, orders)
 
 
 def _runs(timeline: Timeline, drive_ok: NDArray[np.bool_], min_speed_hz: float
@@ -583,20 +584,42 @@ def _runs(timeline: Timeline, drive_ok: NDArray[np.bool_], min_speed_hz: float
             hz = abs(slope) / cycle / timeline.sync_period_s
             if hz < min_speed_hz:
                 continue  # standstill or creeping: no electrical frequency to lock to
-            yield _Run(hold, a, b, p0, slope, hz, cycle / abs(slope))
+            yield _Run(hold, a, b, p0, slope, hz, cycle / abs(slope),
+                       timeline.metadata.microsteps_per_fullstep)
 
 
-def _clock(runs: list[_Run | Rejected], observed: dict[int, NDArray[np.complex128]],
-           orders: tuple[int, ...]) -> float:
-    """``clock_rate`` of ``runs`` from their per-period phasors ``observed`` (by index)."""
+@dataclass(frozen=True)
+class _Observed:
+    """Every steady run of a recording with its per-period phasors (by index into
+    ``runs``) and the sample clock they agree on: computed once, for the clock and then
+    for each run's settling."""
+
+    runs: list[_Run | Rejected]
+    phasors: dict[int, NDArray[np.complex128]]
+    clock: float
+
+
+def _observe(timeline: Timeline, signal: NDArray[np.float64], drive_ok: NDArray[np.bool_],
+             *, orders: tuple[int, ...], min_speed_hz: float) -> _Observed:
+    ok = ~np.isnan(signal)
+    runs = list(_runs(timeline, drive_ok, min_speed_hz))
+    phasors = {i: run.phasors(signal, ok, run.orders(orders))
+               for i, run in enumerate(runs) if isinstance(run, _Run)}
     turns = []
-    for i, z in observed.items():
+    for i, z in phasors.items():
         run = runs[i]
         assert isinstance(run, _Run)
         turn, sigma = _tail_turn(z, run.orders(orders))
         # A turn ahead of the angle is the samples' time running fast, either way round.
         turns.append((turn * run.direction, sigma))
-    return clock_rate(turns)
+    return _Observed(runs, phasors, clock_rate(turns))
+
+
+def _drive_ok(timeline: Timeline) -> NDArray[np.bool_]:
+    """Drive samples to trust: valid, and not a lone glitch of the position demand."""
+    ok: NDArray[np.bool_] = timeline.drive_valid & ~position_glitches(timeline.position,
+                                                                     timeline.drive_valid)
+    return ok
 
 
 def sensor_clock(timeline: Timeline, signal: NDArray[np.float64],
@@ -604,13 +627,8 @@ def sensor_clock(timeline: Timeline, signal: NDArray[np.float64],
     """How much faster than SYNC the samples of ``signal`` (the tangential acceleration,
     NaN where missing) keep their own time, relative; 0 where the holds do not agree on
     it (``clock_rate``): what ``steady_segments`` takes out before judging settling."""
-    ok = ~np.isnan(signal)
-    drive_ok = timeline.drive_valid & ~position_glitches(timeline.position, timeline.drive_valid)
-    cycle = 4 * timeline.metadata.microsteps_per_fullstep
-    runs = list(_runs(timeline, drive_ok, min_speed_hz))
-    observed = {i: run.phasors(signal, ok, run.orders(orders), cycle)
-                for i, run in enumerate(runs) if isinstance(run, _Run)}
-    return _clock(runs, observed, orders)
+    return _observe(timeline, signal, _drive_ok(timeline), orders=orders,
+                    min_speed_hz=min_speed_hz).clock
 
 
 def steady_segments(
@@ -640,20 +658,16 @@ def steady_segments(
     every hold alike.
     """
     m = timeline.metadata.microsteps_per_fullstep
-    cycle = 4 * m
     period_s = timeline.sync_period_s
-    ok = ~np.isnan(signal)
-    drive_ok = timeline.drive_valid & ~position_glitches(timeline.position, timeline.drive_valid)
+    drive_ok = _drive_ok(timeline)
     segments: list[Segment] = []
     rejected: list[Rejected] = []
-    runs = list(_runs(timeline, drive_ok, min_speed_hz))
-    observed: dict[int, NDArray[np.complex128]] = {}
-    clock = 0.0
     if settle_periods is None:
-        observed = {i: run.phasors(signal, ok, run.orders(settle_orders), cycle)
-                    for i, run in enumerate(runs) if isinstance(run, _Run)}
-        clock = _clock(runs, observed, settle_orders)
-    for i, run in enumerate(runs):
+        seen = _observe(timeline, signal, drive_ok, orders=settle_orders,
+                        min_speed_hz=min_speed_hz)
+    else:  # settling is given: no phasors to judge it by
+        seen = _Observed(list(_runs(timeline, drive_ok, min_speed_hz)), {}, 0.0)
+    for i, run in enumerate(seen.runs):
         if isinstance(run, Rejected):
             rejected.append(run)
             continue
@@ -666,7 +680,7 @@ def steady_segments(
             settling = Settling.DATA
             usable = run.orders(settle_orders)
             # Judged with the recording's clock taken out: it turns every hold alike.
-            phasors = without_clock(observed[i], usable, clock * run.direction)
+            phasors = without_clock(seen.phasors[i], usable, seen.clock * run.direction)
             first = settled_period(phasors)
             held = (b - a) / spp
             too_short = held < 2 * _SETTLE_BLOCK
