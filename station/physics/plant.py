@@ -182,13 +182,11 @@ class Mode:
         return self.damping_ratio * 2.0 * math.pi * self.frequency_hz
 
 
-def modal_analysis(unit: UnitParams, amplitude_mA: float, *,
-                   load_angle_rad: float = 0.0) -> list[Mode]:
-    """Modes of the chain with the rotor on its magnetic spring (``magnetic_stiffness``).
-
-    Coulomb friction is left out: in steady motion its tanh is saturated and
-    adds no damping. Sorted by frequency.
-    """
+def _chain_poles(unit: UnitParams, amplitude_mA: float, load_angle_rad: float = 0.0
+                 ) -> NDArray[np.complex128]:
+    """Eigenvalues of the linear chain's state matrix, the rotor on its magnetic spring:
+    ringing modes in conjugate pairs, and the real poles of any part damped beyond
+    critical."""
     chain = build_chain(unit)
     n = len(chain.inertias)
     mass = np.diag(chain.inertias)
@@ -203,8 +201,19 @@ def modal_analysis(unit: UnitParams, amplitude_mA: float, *,
             matrix[i + 1, i + 1] += coeff
     inv_m = np.linalg.inv(mass)
     state = np.block([[np.zeros((n, n)), np.eye(n)], [-inv_m @ stiff, -inv_m @ damp]])
+    poles: NDArray[np.complex128] = np.linalg.eigvals(state).astype(np.complex128)
+    return poles
+
+
+def modal_analysis(unit: UnitParams, amplitude_mA: float, *,
+                   load_angle_rad: float = 0.0) -> list[Mode]:
+    """Modes of the chain with the rotor on its magnetic spring (``magnetic_stiffness``).
+
+    Coulomb friction is left out: in steady motion its tanh is saturated and
+    adds no damping. Sorted by frequency.
+    """
     modes = []
-    for lam in np.linalg.eigvals(state):
+    for lam in _chain_poles(unit, amplitude_mA, load_angle_rad):
         if lam.imag > 0:
             wn = abs(lam)
             modes.append(Mode(wn / (2.0 * math.pi), -lam.real / wn))
@@ -254,21 +263,26 @@ def _periodic_tables(terms: dict[int, list[complex]], slots: int) -> NDArray[np.
 
 
 MAX_STEP_PHASE = 0.7
-"""ω·h of the chain's fastest mode per integration step, at most. Symplectic
+"""|λ|·h of the chain's fastest pole per integration step, at most. Symplectic
 Euler keeps a mode stable below 2 and stretches its period by about (ω·h)²/24:
-2 % here, and only for modes far above the sensor's band."""
+2 % here, and only for modes far above the sensor's band. Its damping is explicit, so a
+part damped beyond critical has a real pole that needs the same bound: a belt's pulley
+(3.8 µg·m², on a belt of 1,300 N·m/rad and 0.19 N·m·s/rad at the motor) has no mode,
+but poles at −8,100 and −43,000 s⁻¹, and at 8 substeps the plant overflowed (benchmark
+trial load_resonance@1580042069 ended a run of 85 minutes)."""
 
 
 def substeps_for(unit: UnitParams, sync_period_s: float, minimum: int) -> int:
     """The fewest substeps per SYNC, at least ``minimum``, that integrate ``unit`` stably.
 
-    A stiff belt on a light rotor rings at kilohertz; at the usual 8 substeps
-    of a 1-ms SYNC it would blow up. The magnetic spring is taken at the
-    strongest current the trims allow (1.5 × rated), where the modes are highest.
+    A stiff belt on a light rotor rings at kilohertz, and a heavily damped pulley decays
+    faster still; at the usual 8 substeps of a 1-ms SYNC either would blow up. The
+    magnetic spring is taken at the strongest current the trims allow (1.5 × rated),
+    where the modes are highest.
     """
     current = unit.rated_current_mA * GAIN_LIMITS[1] / GAIN_UNITY
-    fastest = max((m.frequency_hz for m in modal_analysis(unit, current)), default=0.0)
-    needed = math.ceil(2.0 * math.pi * fastest * sync_period_s / MAX_STEP_PHASE)
+    fastest = float(np.max(np.abs(_chain_poles(unit, current)), initial=0.0))
+    needed = math.ceil(fastest * sync_period_s / MAX_STEP_PHASE)
     return max(minimum, needed)
 
 

@@ -374,3 +374,22 @@ def test_the_sensor_reads_the_acceleration_of_its_instant_whatever_the_substep()
     # Half a substep of 8 per ms at 20 Hz electrical would be 7 mrad at order 1.
     # (Measured: 0.1 and 0.24 mrad at orders 1 and 2; 6.9 and 13.8 before the fix.)
     assert np.abs(np.angle(coarse / fine)).max() < 1e-3
+
+
+def test_a_pulley_damped_beyond_critical_is_integrated_stably_at_the_default_substeps() -> None:
+    """Benchmark trial load_resonance@1580042069: a belt's 3.8 µg·m² pulley on a damped
+    belt has no mode above 359 Hz but real poles near −43,000 s⁻¹; at 8 substeps of a 1-ms
+    SYNC its explicit damping overflowed the plant."""
+    from station.sim.population import draw_unit  # noqa: PLC0415
+
+    unit = draw_unit(1580042069, load=LoadKind.BELT, effects=frozenset({Effect.LOAD_RESONANCE}),
+                     unnamed=frozenset())
+    plant = Plant(unit)
+    assert plant.substeps > 8
+    velocity = 10.0 * 4 * M
+    plant.place_on_trajectory(DriveCommand(True, 1000.0, NOMINAL, 0.0, velocity, 0.0, M))
+    counts = np.array([plant.advance(DriveCommand(True, 1000.0, NOMINAL, velocity * k * T,
+                                                  velocity, 0.0, M)) for k in range(300)])
+    assert np.all(np.abs(counts) < SATURATED_COUNTS)
+    expected = 2 * math.pi * velocity * 300 * T / (4 * M) / unit.rotor_teeth
+    assert plant.rotor_angle_rad == pytest.approx(expected, abs=2 * math.pi / unit.rotor_teeth / 4)
