@@ -83,7 +83,8 @@ def _exact(trials: list[Trial]) -> float:
 def _share_without(trials: list[Trial], key: str) -> float:
     """Share of ``trials`` whose diagnosis found nothing under ``key`` (no effects, no
     mismatch); a refused diagnosis has no such key and counts as having found it."""
-    return statistics.fmean(0.0 if t.doc.get(key, True) else 1.0 for t in trials)
+    return (statistics.fmean(0.0 if t.doc.get(key, True) else 1.0 for t in trials)
+            if trials else 1.0)
 
 
 def _no_wrong_id(trial: Trial) -> bool:
