@@ -24,6 +24,7 @@ from station.physics.plant import (
     commanded_currents_A,
     modal_analysis,
 )
+from station.sim.population import draw_unit
 
 M = 256
 T = 0.001
@@ -380,8 +381,6 @@ def test_a_pulley_damped_beyond_critical_is_integrated_stably_at_the_default_sub
     """Benchmark trial load_resonance@1580042069: a belt's 3.8 µg·m² pulley on a damped
     belt has no mode above 359 Hz but real poles near −43,000 s⁻¹; at 8 substeps of a 1-ms
     SYNC its explicit damping overflowed the plant."""
-    from station.sim.population import draw_unit  # noqa: PLC0415
-
     unit = draw_unit(1580042069, load=LoadKind.BELT, effects=frozenset({Effect.LOAD_RESONANCE}),
                      unnamed=frozenset())
     plant = Plant(unit)
