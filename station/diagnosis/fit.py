@@ -108,10 +108,12 @@ class Fit:
 
     @property
     def rejected(self) -> tuple[str, ...]:
-        """Blocks resting on a bound their group may not rest on (``Block.rejects``)."""
+        """Blocks resting on a bound their group may not rest on (``Block.rejects``), or
+        fitted where their group is the base model again (``Block.null_band``)."""
+        slices = self.model.layout.slices
         return tuple(b.name for b in self.model.layout.blocks
-                     if any(side in b.rejects
-                            for side in self.active[self.model.layout.slices[b.name]]))
+                     if any(side in b.rejects for side in self.active[slices[b.name]])
+                     or bool(np.any(np.abs(self.params[slices[b.name]]) < b.null_band)))
 
     def scalar(self, name: str) -> float:
         return float(self.value(name)[0])

@@ -24,6 +24,7 @@ from station.diagnosis.model import (
     DETENT_ORDERS,
     DISTORTION_ORDERS,
     FLUX_ORDERS,
+    MIN_CLOCK_PPM,
     ChainKind,
     Model,
     saturation_shapes,
@@ -198,9 +199,6 @@ def scan_trials(model: Model) -> float:
     scanned = float(CLOCK_RATES_PPM[-1] - CLOCK_RATES_PPM[0])
     return max(1.0, scanned * 1e-6 * span)
 
-
-MIN_CLOCK_PPM = 5.0
-"""A periodogram peak nearer no drift than this is the constant delay the base model has."""
 
 CLOCK_PEAKS = 12
 """Periodogram peaks screened: segments spaced alike alias the true rate, and their

@@ -120,6 +120,10 @@ class Block:
     a clock 5000 ppm off or a current loop twenty periods late is something else the
     group stands in for. (Friction's smoothing has none: its ceiling is still Coulomb
     friction, ``FRICTION_SMOOTHING_MAX``.)"""
+    null_band: float = 0.0
+    """Values nearer zero than this leave no physics of the group's own: a clock keeping
+    SYNC's rate to a few ppm is the sensor's constant delay, and a fit that ends there
+    holds a fixed sub-sample phase that stands in for something else (``MIN_CLOCK_PPM``)."""
 
 
 @dataclass
@@ -374,8 +378,17 @@ def _blocks_friction(spec: ModelSpec, obs: Observations) -> list[Block]:
     ]
 
 
+MIN_CLOCK_PPM = 5.0
+"""A clock rate nearer SYNC's than this is the constant delay the base model has: over a
+minute's recording it moves the samples by a third of a SYNC period at most, and the
+clocks the group is for run tens to hundreds of ppm off. Periodogram peaks below it are
+not started from, and a fit that ends below it is not a drifting clock
+(``Block.null_band``)."""
+
+
 def _blocks_clock(spec: ModelSpec, obs: Observations) -> list[Block]:
-    drift = Block("clock_drift_ppm", 1, 0.0, -5000.0, 5000.0, rejects=(-1, 1))
+    drift = Block("clock_drift_ppm", 1, 0.0, -5000.0, 5000.0, rejects=(-1, 1),
+                  null_band=MIN_CLOCK_PPM)
     if not spec.clock_wraps:
         return [drift]  # a constant part would be the sensor's delay again
     return [drift, Block("clock_phase", 1, 0.5, -0.5, 1.5)]

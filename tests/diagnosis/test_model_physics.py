@@ -57,7 +57,6 @@ from station.diagnosis.groups import (
     CLOCK_RATES_PPM,
     GROUP_ESTIMATES,
     GROUP_PARAMETERS,
-    MIN_CLOCK_PPM,
     ClockScan,
     _starts_clock,
     segment_delays,
@@ -65,6 +64,7 @@ from station.diagnosis.groups import (
 from station.diagnosis.model import (
     FRICTION_SMOOTHING_MAX,
     GRID,
+    MIN_CLOCK_PPM,
     ChainKind,
     Model,
     ModelSpec,
@@ -535,6 +535,25 @@ def test_a_clocks_rate_chosen_by_a_scan_must_beat_what_the_scan_finds_in_noise()
     assert test.chi2_gain < test.bic_threshold and not test.significant
     # Nothing is scanned when the clock is already in both models.
     assert compare(test.larger, test.larger).elsewhere == 0.0
+
+
+def test_a_clock_fitted_at_syncs_own_rate_is_not_named_a_drifting_clock() -> None:
+    """A clock whose fit ends within a few ppm of SYNC's rate holds one sub-sample phase
+    throughout: the sensor's constant delay, with the sawtooth's hold beside it, which
+    took what a loop lag or a coupling left on two benchmark trials (fitted at −0.06 and
+    −1.6 ppm, named sensor_clock_drift). A concealed clock (development seed 24) counts;
+    the same fit moved to within the band is rejected whatever it gains."""
+    test = _added(Case(TrialClass(frozenset({Effect.SENSOR_CLOCK_DRIFT})), 24),
+                  Effect.SENSOR_CLOCK_DRIFT)
+    fitted = test.larger.fit
+    assert test.significant
+    assert abs(fitted.scalar("clock_drift_ppm")) > 10 * MIN_CLOCK_PPM
+    assert fitted.rejected == ()
+    at_sync = fitted.params.copy()
+    at_sync[fitted.model.layout.slices["clock_drift_ppm"]] = -0.5 * MIN_CLOCK_PPM
+    held = replace(fitted, params=at_sync)
+    assert held.rejected == ("clock_drift_ppm",)
+    assert not replace(test, larger=replace(test.larger, fit=held)).significant
 
 
 def test_a_group_beside_others_must_gain_more_than_their_errors_leave_or_explain_the_rest(
