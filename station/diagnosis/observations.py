@@ -24,7 +24,7 @@ from station.analysis.harmonics import JOINT_ORDERS, Harmonics
 from station.analysis.pipeline import AnalysisOptions, Measured, group_conditions, measure
 from station.analysis.segments import Rejected, Segment, SettleFallback, Settling
 from station.analysis.timeline import Timeline
-from station.core import Axis
+from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Axis
 from station.errors import InputError
 from station.recording import RecordingMetadata
 
@@ -247,6 +247,20 @@ def mechanical_phasor(segment: Segment, rotor_teeth: int, per_revolution: int = 
     return complex(np.mean(np.exp(1j * per_revolution * theta)))
 
 
+def clipping_advice(sensor_lsb_mps2: float) -> str:
+    """What to change when holds clip: the sensor's range while a wider one exists (ICD:
+    2, 4, 8 or 16 g, one LSB a 32768th of it), else the operating point. Told to widen a
+    range already at 16 g, an engineer records the same clipped schedule again (benchmark
+    trial current_distortion+current_loop_lag@1124444116: a light disk past 16 g in
+    nearly every hold at 38 Hz)."""
+    range_g = sensor_lsb_mps2 * 32768.0 / STANDARD_GRAVITY
+    widest = max(SENSOR_RANGES_G)
+    if range_g < 0.99 * widest:
+        return "record with a larger range"
+    return (f"the sensor is at its widest range ({widest} g): record at lower speeds or "
+            "currents")
+
+
 def _refuse_unless_characterization(segments: list[Segment], sync_period_s: float,
                                     conditions: int, why: str) -> None:
     speeds = {round(abs(s.electrical_hz(sync_period_s)), 1) for s in segments}
@@ -280,6 +294,7 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     period = timeline.sync_period_s
     skipped = [_skipped(r, period) for r in rejected]
     clipped_n = sparse_n = erratic_n = 0
+    advice = clipping_advice(timeline.metadata.sensor_lsb_mps2)
     erratic = _not_periodic(measured, orders)
     for condition in conditions:
         key = ConditionKey(condition.amplitude_mA, condition.electrical_hz)
@@ -300,8 +315,7 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
                 clipped_n += 1
                 skipped.append(Skipped(*where, (
                     f"{key.label()}: {100 * clipped:.0f} % of the samples clipped at the "
-                    f"sensor's full scale (more than {100 * MAX_CLIPPED:.0f} %): record with "
-                    "a larger range")))
+                    f"sensor's full scale (more than {100 * MAX_CLIPPED:.0f} %): {advice}")))
             else:
                 usable.append(m)
         if not usable:
@@ -311,10 +325,10 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     segs_all = [m.segment for _, m in rows]
     reasons = sorted({r.reason for r in rejected})
     if clipped_n:
-        # A recording clipped at every fast speed needs another range, not another schedule.
+        # A recording clipped at every fast speed needs another range (at the widest, another
+        # operating point), not another schedule.
         reasons.append(f"{clipped_n} settled segment(s) clipped at the sensor's full scale in "
-                       f"more than {100 * MAX_CLIPPED:.0f} % of their samples: record with a "
-                       "larger range")
+                       f"more than {100 * MAX_CLIPPED:.0f} % of their samples: {advice}")
     if erratic_n:
         reasons.append(f"{erratic_n} settled segment(s) whose motion was not periodic: "
                        "record at speeds away from the chain's resonance")

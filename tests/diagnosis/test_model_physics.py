@@ -497,14 +497,21 @@ def test_holds_shorter_than_a_belts_decay_give_the_phasors_of_long_holds() -> No
     assert ignored / values > 1.8 * fitted_out / values
 
 
-def test_a_recording_clipped_at_all_but_one_speed_is_refused_with_the_range_to_change() -> None:
+@pytest.mark.parametrize(("range_g", "advice"), [
+    (8, "record with a larger range"),
+    (16, "the sensor is at its widest range (16 g): record at lower speeds or currents"),
+])
+def test_a_recording_clipped_at_all_but_one_speed_is_refused_with_what_to_change(
+        range_g: int, advice: str) -> None:
     """Clipping, not the schedule, left one speed: the refusal must say so, or the engineer
-    records the same schedule again with the same range."""
+    records the same schedule again with the same range; and at the widest range it must
+    name the operating point instead, which is all that is left to change."""
     seed = 42
     unit = plan_trial(Case(TrialClass(frozenset()), seed)).unit
     ranges = RandomCharacterizationRanges(speeds=(2, 2), electrical_hz=(15.0, 30.0),
                                           amplitudes=(2, 2), hold_s=(0.6, 0.6))
-    schedule = random_characterization(np.random.default_rng(seed), ranges=ranges)
+    schedule = replace(random_characterization(np.random.default_rng(seed), ranges=ranges),
+                       sensor_range_g=range_g)
     recorded = simulate_timeline(unit, schedule, seed=seed, substeps=PLANT_SUBSTEPS)
     speed = np.abs(np.diff(recorded.position, prepend=recorded.position[0]))
     fast = speed > 0.5 * (speed.max() + np.median(speed[speed > 0]))
@@ -515,7 +522,9 @@ def test_a_recording_clipped_at_all_but_one_speed_is_refused_with_the_range_to_c
     assert len({round(abs(c.electrical_hz), 1) for c in observe(recorded).conditions}) == 2
     with pytest.raises(NotDiagnosable, match="clipped at the sensor's full scale") as refused:
         observe(clipped)
-    assert "record with a larger range" in str(refused.value)
+    assert str(refused.value).count(advice) == 1
+    other = {8: "widest range", 16: "larger range"}[range_g]
+    assert other not in str(refused.value)
 
 
 def test_a_clocks_rate_chosen_by_a_scan_must_beat_what_the_scan_finds_in_noise() -> None:
