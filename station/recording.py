@@ -100,6 +100,12 @@ class RecordingMetadata:
     gear_ratio: float
     extra: Mapping[str, Any] = field(default_factory=dict)
 
+    @property
+    def sensor_full_scale_mps2(self) -> float:
+        """The acceleration the sensor's range ends at: its sensitivity is range·g/32768
+        (ICD.md §3, 0x2001), so the range is read back from the sensitivity alone."""
+        return self.sensor_lsb_mps2 * 32768.0
+
     def to_json_dict(self) -> dict[str, Any]:
         doc: dict[str, Any] = {
             "format": RECORDING_FORMAT,

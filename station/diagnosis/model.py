@@ -305,7 +305,7 @@ def bend_bases(obs: Observations) -> tuple[NDArray[np.complex128], NDArray[np.co
     synth = np.exp(1j * np.outer(k, x))
     dc = np.zeros(obs.count) if obs.dc is None else obs.dc
     wave = dc[:, None] + (phasors @ synth).real
-    full_scale = obs.metadata.sensor_lsb_mps2 * 32768.0
+    full_scale = obs.metadata.sensor_full_scale_mps2
     analyse = 2.0 / BEND_GRID * np.exp(-1j * np.outer(x, k))
     square = (wave**2 / full_scale) @ analyse
     cube = (wave**3 / full_scale**2) @ analyse

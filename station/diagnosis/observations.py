@@ -247,13 +247,13 @@ def mechanical_phasor(segment: Segment, rotor_teeth: int, per_revolution: int = 
     return complex(np.mean(np.exp(1j * per_revolution * theta)))
 
 
-def clipping_advice(sensor_lsb_mps2: float) -> str:
+def clipping_advice(metadata: RecordingMetadata) -> str:
     """What to change when holds clip: the sensor's range while a wider one exists (ICD:
-    2, 4, 8 or 16 g, one LSB a 32768th of it), else the operating point. Told to widen a
-    range already at 16 g, an engineer records the same clipped schedule again (benchmark
-    trial current_distortion+current_loop_lag@1124444116: a light disk past 16 g in
-    nearly every hold at 38 Hz)."""
-    range_g = sensor_lsb_mps2 * 32768.0 / STANDARD_GRAVITY
+    2, 4, 8 or 16 g), else the operating point. Told to widen a range already at 16 g, an
+    engineer records the same clipped schedule again (benchmark trial
+    current_distortion+current_loop_lag@1124444116: a light disk past 16 g in nearly
+    every hold at 38 Hz)."""
+    range_g = metadata.sensor_full_scale_mps2 / STANDARD_GRAVITY
     widest = max(SENSOR_RANGES_G)
     if range_g < 0.99 * widest:
         return "record with a larger range"
@@ -294,7 +294,7 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     period = timeline.sync_period_s
     skipped = [_skipped(r, period) for r in rejected]
     clipped_n = sparse_n = erratic_n = 0
-    advice = clipping_advice(timeline.metadata.sensor_lsb_mps2)
+    advice = clipping_advice(timeline.metadata)
     erratic = _not_periodic(measured, orders)
     for condition in conditions:
         key = ConditionKey(condition.amplitude_mA, condition.electrical_hz)
