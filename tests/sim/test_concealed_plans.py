@@ -89,14 +89,15 @@ def test_the_speeds_a_unit_falls_out_of_step_at_are_left_out_of_its_characteriza
     assert nominal_of(run)[1].balanced.chi2 > 0  # not refused
 
 
-@pytest.mark.parametrize(("stalled", "kept"), [
-    (set(), 3),  # nothing stalled: as drawn
-    ({3}, 3),  # one hold clipped at a speed, the others not: a swing, not a stall
-    ({0}, 2),  # one speed stalled: the two others
-    ({0, 1}, 0),  # one speed would be left: no characterization
+@pytest.mark.parametrize(("stalled", "spared", "kept"), [
+    (set(), 0, 3),  # nothing stalled: as drawn
+    ({3}, 0, 3),  # one hold clipped at a speed, the others not: a swing, not a stall
+    ({0}, 0, 2),  # one speed stalled: the two others
+    ({0}, 3, 2),  # a speed clipped in all but three holds: stalled still
+    ({0, 1}, 0, 0),  # one speed would be left: no characterization
 ])
 def test_a_stalled_speed_is_dropped_only_while_two_speeds_remain(
-        stalled: set[int], kept: int) -> None:
+        stalled: set[int], spared: int, kept: int) -> None:
     three = replace(RANDOM_CHARACTERIZATION, speeds=(3, 3))
     schedule = random_characterization(np.random.default_rng(3), ranges=three)
     speeds = sorted({abs(h.velocity) for h in schedule.holds if h.velocity})
@@ -105,6 +106,10 @@ def test_a_stalled_speed_is_dropped_only_while_two_speeds_remain(
              else (1.0 if h.velocity else 0.0) for h in schedule.holds]
     if stalled == {3}:  # not a speed: one hold of the first speed clips
         peaks[next(i for i, h in enumerate(schedule.holds) if h.velocity)] = full
+    at_first = [i for i, h in enumerate(schedule.holds) if abs(h.velocity) == speeds[0]]
+    assert len(at_first) > 4 * spared
+    for i in at_first[:spared]:  # holds the stalled speed happened not to clip in
+        peaks[i] = 0.8 * full
     assert max(peaks) == (1.0 if not stalled else full)
     runnable = _runnable(schedule, peaks)
     if not kept:
