@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
 from enum import StrEnum
 
@@ -408,6 +408,93 @@ def settled_period(per_period: NDArray[np.complex128]) -> int | None:
     return None
 
 
+_TURNING_SIGMAS = 2.0
+"""Robust spreads of one period's phasor that what the common turn leaves of a hold may
+reach (its RMS; scatter alone leaves about 0.8) for the hold to count as turning with
+the rotor."""
+
+_TURN_SHARE = 0.75
+"""Share of what the holds' own levels leave that the common turn must explain, at one
+order at least, to be a turn at all."""
+
+
+def _local(z: NDArray[np.complex128]) -> NDArray[np.bool_]:
+    """Periods within ``_OUTLIER_SIGMAS`` of the median of the five around them, ``z`` in
+    units of its spread: the median follows a steady trend, not a single wild period."""
+    near = np.array([_complex_median(z[max(0, j - 2):j + 3]) for j in range(z.size)])
+    out: NDArray[np.bool_] = np.abs(z - near) <= _OUTLIER_SIGMAS
+    return out
+
+
+def turning_with_rotor(holds: Sequence[tuple[NDArray[np.complex128], NDArray[np.float64]]]
+                       ) -> list[bool]:
+    """For the holds of one operating point, each given as its per-period phasors after the
+    chain has forgotten the hold's change and each period's mechanical angle (rad):
+    whether that hold's phasors are its own level times one change once per mechanical
+    revolution that all the holds share, within the scatter of one period.
+
+    An eccentric rotor's spring, or a load heavier on one side, moves the operating point
+    with the rotor's angle; near a mode this turns the ripple's phasors by far more than
+    their scatter over a hold, so the hold never looks settled although nothing rings (a
+    development disk, rotor_eccentricity@520972, lost 24 of its 56 holds, and with them
+    what named it). Such a hold is steady in the sense that matters: its mean is the
+    response at its mean mechanical angle, which the model computes. The change is the
+    chain's response at that angle, so it scales with each hold's level and repeats
+    from hold to hold as the rotor turns on; a slow transient restarts at every change,
+    towards each hold's own level, and fits no common turn (one hold alone could not
+    tell the two apart over part of a revolution), so most holds must share the turn.
+    Periods a few spreads off the fit (lost samples) are set aside, but never most of a
+    hold's.
+    """
+    usable = [i for i, (z, _) in enumerate(holds) if z.shape[0] >= 3 * _SETTLE_BLOCK]
+    verdict = [False] * len(holds)
+    if len(usable) < 2:
+        return verdict
+    orders = min(holds[i][0].shape[1] for i in usable)
+    ok = dict.fromkeys(usable, True)
+    turned = False
+    for k in range(orders):
+        blocks, sizes, values, owner = [], [], [], []
+        for m, i in enumerate(usable):
+            z, angle = holds[i][0][:, k], holds[i][1]
+            spread = float(_period_spread(z[:, None])[0])
+            level = complex(_complex_median(z))
+            blocks.append(np.column_stack([
+                np.eye(len(usable))[np.full(z.size, m)],
+                level * np.exp(1j * angle), level * np.exp(-1j * angle)]) / spread)
+            values.append(z / spread)
+            owner.append(np.full(z.size, m))
+            sizes.append(z.size)
+        design, target = np.vstack(blocks), np.concatenate(values)
+        who = np.concatenate(owner)
+        # A lost period is a spike against its neighbours, which a smooth turn is not.
+        kept = np.concatenate([_local(z) for z in values])
+        for _ in range(4):
+            coef = np.linalg.lstsq(design[kept], target[kept], rcond=None)[0]
+            residual = np.abs(target - design @ coef)  # in spreads
+            within = residual <= _OUTLIER_SIGMAS
+            if np.array_equal(within, kept) or any(
+                    2 * int(within[who == m].sum()) < n for m, n in enumerate(sizes)):
+                break
+            kept = within
+        for m, i in enumerate(usable):
+            mine = (who == m) & kept
+            rms = math.sqrt(float(np.mean(residual[mine] ** 2))) if mine.any() else math.inf
+            ok[i] = ok[i] and 2 * int(mine.sum()) >= sizes[m] and rms <= _TURNING_SIGMAS
+        # The levels alone, over the same periods: what the turn must explain.
+        levels = design[kept][:, :len(usable)]
+        alone = target[kept] - levels @ np.linalg.lstsq(levels, target[kept], rcond=None)[0]
+        turned = turned or (float(np.sum(residual[kept] ** 2))
+                            <= (1.0 - _TURN_SHARE) * float(np.sum(np.abs(alone) ** 2)))
+    # A turn most holds do not share is no common turn: a hold that fits it alone does
+    # so by chance. Nor is one that leaves the levels as they were: holds at the level of
+    # their scatter fit any turn, and there the data's own verdict stands.
+    if turned and 2 * sum(ok.values()) > len(usable):
+        for i in usable:
+            verdict[i] = ok[i]
+    return verdict
+
+
 CLOCK_SIGMAS = 5.0
 """Standard errors a recording's common phase turn must exceed to be taken as a clock."""
 _CLOCK_STRONG = 10.0
@@ -548,6 +635,7 @@ class _Run:
     hz: float  # electrical, unsigned
     samples_per_period: float
     microsteps_per_fullstep: int
+    rotor_teeth: int
 
     @property
     def direction(self) -> float:
@@ -585,7 +673,7 @@ def _runs(timeline: Timeline, drive_ok: NDArray[np.bool_], min_speed_hz: float
             if hz < min_speed_hz:
                 continue  # standstill or creeping: no electrical frequency to lock to
             yield _Run(hold, a, b, p0, slope, hz, cycle / abs(slope),
-                       timeline.metadata.microsteps_per_fullstep)
+                       timeline.metadata.microsteps_per_fullstep, timeline.metadata.rotor_teeth)
 
 
 @dataclass(frozen=True)
@@ -613,6 +701,28 @@ def _observe(timeline: Timeline, signal: NDArray[np.float64], drive_ok: NDArray[
         # A turn ahead of the angle is the samples' time running fast, either way round.
         turns.append((turn * run.direction, sigma))
     return _Observed(runs, phasors, clock_rate(turns))
+
+
+def _operating_point(run: _Run | Rejected) -> tuple[int, float] | None:
+    """(amplitude mA, signed electrical Hz to 0.1) of a steady run; None for a rejection."""
+    if isinstance(run, Rejected):
+        return None
+    return run.hold.amplitude_mA, round(math.copysign(run.hz, run.slope), 1)
+
+
+def _after_change(seen: _Observed, index: int, orders: tuple[int, ...], settle_s: float,
+                  period_s: float) -> tuple[NDArray[np.complex128], NDArray[np.float64]]:
+    """Run ``index``'s per-period phasors (the clock taken out) from ``settle_s`` after its
+    hold's change, with each period's mechanical angle at its middle."""
+    run = seen.runs[index]
+    assert isinstance(run, _Run)
+    z = without_clock(seen.phasors[index], run.orders(orders), seen.clock * run.direction)
+    spp = run.samples_per_period
+    waited = math.ceil(max(0.0, settle_s / period_s - (run.start - run.hold.start)) / spp)
+    middle = (np.arange(waited, z.shape[0], dtype=np.float64) + 0.5) * spp
+    revolution = 4 * run.microsteps_per_fullstep * run.rotor_teeth
+    angle = (2 * math.pi / revolution) * (run.position0 + run.slope * middle)
+    return z[waited:], angle
 
 
 def _drive_ok(timeline: Timeline) -> NDArray[np.bool_]:
@@ -655,7 +765,9 @@ def steady_segments(
     that uses higher orders should watch them too, since a mode's ringing shows at
     the orders near its frequency long after orders 1 and 2 look steady. Settling is
     judged with the recording's sample clock taken out (``sensor_clock``), which turns
-    every hold alike.
+    every hold alike. Where the chain says its ringing is over but the data never settle,
+    the holds of that operating point are kept if they change together as the rotor turns
+    (``turning_with_rotor``: an eccentric rotor near a mode), else rejected.
     """
     m = timeline.metadata.microsteps_per_fullstep
     period_s = timeline.sync_period_s
@@ -667,6 +779,20 @@ def steady_segments(
                         min_speed_hz=min_speed_hz)
     else:  # settling is given: no phasors to judge it by
         seen = _Observed(list(_runs(timeline, drive_ok, min_speed_hz)), {}, 0.0)
+    turning: dict[tuple[int, float], dict[int, bool]] = {}
+
+    def turns(index: int, decay: ChainDecay) -> bool:
+        """Whether run ``index`` turns with the rotor together with its operating point's
+        other holds (``turning_with_rotor``), judged once per operating point."""
+        point = _operating_point(seen.runs[index])
+        assert point is not None  # a steady run's
+        if point not in turning:
+            members = [j for j, r in enumerate(seen.runs) if _operating_point(r) == point]
+            given = [_after_change(seen, j, settle_orders, decay.settle_s(), period_s)
+                     for j in members]
+            turning[point] = dict(zip(members, turning_with_rotor(given), strict=True))
+        return turning[point][index]
+
     for i, run in enumerate(seen.runs):
         if isinstance(run, Rejected):
             rejected.append(run)
@@ -704,8 +830,9 @@ def steady_segments(
                 available_s = (b - hold.start) * period_s
                 needed_s = shortest * spp * period_s
                 wait_s, ringing = decay.plan(available_s, needed_s)
-                if not too_short and not ringing:
-                    # The model sees nothing slow where the data do: trust the data.
+                if not too_short and not ringing and not turns(i, decay):
+                    # The model sees nothing slow where the data do, and the data do not
+                    # change with the rotor's angle alone: trust the data.
                     rejected.append(Rejected(a, b, "the rotor did not settle within the hold"))
                     continue
                 if not ringing:

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,6 +31,7 @@ from station.analysis.segments import (
     sensor_clock,
     settled_period,
     steady_segments,
+    turning_with_rotor,
 )
 from station.analysis.timeline import LossReport, Timeline, unwrap_int32
 from station.core import Trims
@@ -702,6 +704,87 @@ def test_settled_period_refuses_a_trend_that_lasts_to_the_end() -> None:
         trend = (slope * k) * np.array([1.0, 1.0])
         assert settled_period(_per_period(rng, trend.astype(np.complex128))) is None, slope
     assert settled_period(_per_period(rng, np.zeros((5, 2), np.complex128))) is None  # too short
+
+
+TEETH = META.rotor_teeth  # electrical periods per mechanical revolution
+
+
+def _one_point(rng: np.random.Generator, levels: Sequence[complex], periods: int,
+               change: Callable[[NDArray[np.float64], int], NDArray[Any]]
+               ) -> list[tuple[NDArray[np.complex128], NDArray[np.float64]]]:
+    """Holds one after the other at one operating point, each at its own level times
+    (1 + ``change``(its periods' mechanical angles, its index)), with scatter of 0.01."""
+    out = []
+    for i, level in enumerate(levels):
+        angle = 2 * math.pi * (np.arange(periods) + i * periods) / TEETH
+        orders = level * np.array([1.0, 0.4j]) * (1.0 + change(angle, i))[:, None]
+        out.append((orders + 0.01 * (rng.normal(size=orders.shape)
+                                     + 1j * rng.normal(size=orders.shape)), angle))
+    return out
+
+
+LEVELS = (0.5, 0.3 + 0.2j, 0.6 - 0.1j, 0.4j)
+"""Four trim holds' ripple levels at one operating point."""
+
+
+def test_holds_that_change_only_as_the_rotor_turns_are_told_from_transients() -> None:
+    rng = np.random.default_rng(7)
+    # Each hold half a revolution, the level swinging by ±30 %, two periods that
+    # lost samples: no settled level for the data alone, yet nothing rings.
+    swing = _one_point(rng, LEVELS, 25, lambda angle, _: 0.3 * np.cos(angle + 0.4))
+    swing[1][0][[3, 8]] += 2.0
+    assert all(settled_period(z) is None for z, _ in swing)
+    assert turning_with_rotor(swing) == [True] * 4
+    # Holds at their levels with scatter alone fit any turn: no turn to speak of, and the
+    # data's own verdict on them stands.
+    assert not any(turning_with_rotor(_one_point(rng, LEVELS, 25, lambda a, _: 0.0 * a)))
+    # A slow approach from each hold's change to its level looks alike over one hold, but
+    # it restarts at every change, from the previous level.
+    def approach(angle: NDArray[np.float64], i: int) -> NDArray[np.complex128]:
+        since = np.arange(angle.size)
+        before = LEVELS[i - 1] if i else 0.0
+        return np.asarray((before / LEVELS[i] - 1.0) * np.exp(-since / 20.0), np.complex128)
+
+    assert not any(turning_with_rotor(_one_point(rng, LEVELS, 25, approach)))
+    alone = swing[:1]  # one hold cannot tell the two apart
+    assert turning_with_rotor(alone) == [False]
+
+
+ECCENTRIC_SWING = 0.2
+"""The ripple's level swings by ±20 % once per revolution: a few percent of eccentricity
+beside a mode the operating point sits near."""
+
+
+def _fast_chain(amplitude_mA: int, electrical_hz: float) -> ChainDecay:
+    """A fitted chain whose only mode (200 Hz, τ = 5 ms) is forgotten within 30 ms."""
+    return ChainDecay((complex(-200.0, 2 * math.pi * 200.0),), math.log(300.0), 0.02)
+
+
+def test_a_hold_whose_ripple_swings_with_the_rotors_angle_is_kept_at_its_mean() -> None:
+    run = _offset_sweep(tau_s=0.0, periods=25, ring=0.0)
+    mechanical = 2 * math.pi * run.position / (CYCLE * TEETH)
+    clean = Run(run.pieces, noise=0.0).signal
+    run.signal = run.signal + ECCENTRIC_SWING * np.cos(mechanical) * clean
+    # The data alone see holds that never settle; the chain says nothing rings so long.
+    alone, rejected = steady_segments(run.timeline(), run.signal)
+    assert alone == [] and len(rejected) == 5
+    segments, rejected = steady_segments(run.timeline(), run.signal,
+                                         settle_fallback=_fast_chain)
+    assert rejected == [] and len(segments) == 5
+    for seg in segments:
+        assert seg.settling is Settling.MODEL
+        window = run.signal[seg.start:seg.stop]
+        swing = 1.0 + ECCENTRIC_SWING * np.mean(np.cos(mechanical[seg.start:seg.stop]))
+        fitted = seg.harmonics(window, orders=2)
+        # The mean over the hold is the ripple at the hold's mean mechanical angle.
+        truth = h1_of(_as_tuple(seg.trims)) * swing
+        assert abs(fitted.h(1) - truth) < 4 * math.sqrt(fitted.var(1))
+    # A slow approach is still no steady hold, whatever the chain says.
+    slow = _offset_sweep(tau_s=3.0, periods=25, ring=0.0)
+    kept, rejected = steady_segments(slow.timeline(), slow.signal,
+                                     settle_fallback=_fast_chain)
+    assert kept == []
+    assert [r.reason for r in rejected] == ["the rotor did not settle within the hold"] * 5
 
 
 CLOCK_PPM = 500.0
