@@ -157,6 +157,15 @@ def _electrical_angle(position0: float, slope: float, samples: int, microsteps_p
     return out
 
 
+def mechanical_angle(position: NDArray[np.float64], microsteps_per_fullstep: int,
+                     rotor_teeth: int) -> NDArray[np.float64]:
+    """The rotor's angle at a position demand: one revolution is 4·m·Nr microsteps (a full
+    electrical cycle is four full steps, and a hybrid rotor turns once per Nr cycles)."""
+    revolution = 4 * microsteps_per_fullstep * rotor_teeth
+    out: NDArray[np.float64] = (2 * math.pi / revolution) * position
+    return out
+
+
 @dataclass(frozen=True)
 class Segment:
     """Samples [start, stop) of one steady condition, a whole number of periods long.
@@ -720,8 +729,8 @@ def _after_change(seen: _Observed, index: int, orders: tuple[int, ...], settle_s
     spp = run.samples_per_period
     waited = math.ceil(max(0.0, settle_s / period_s - (run.start - run.hold.start)) / spp)
     middle = (np.arange(waited, z.shape[0], dtype=np.float64) + 0.5) * spp
-    revolution = 4 * run.microsteps_per_fullstep * run.rotor_teeth
-    angle = (2 * math.pi / revolution) * (run.position0 + run.slope * middle)
+    angle = mechanical_angle(run.position0 + run.slope * middle, run.microsteps_per_fullstep,
+                             run.rotor_teeth)
     return z[waited:], angle
 
 

@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from station.analysis.harmonics import JOINT_ORDERS, Harmonics
 from station.analysis.pipeline import AnalysisOptions, Measured, group_conditions, measure
-from station.analysis.segments import Rejected, Segment, SettleFallback, Settling
+from station.analysis.segments import Rejected, Segment, SettleFallback, Settling, mechanical_angle
 from station.analysis.timeline import Timeline
 from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Axis
 from station.errors import InputError
@@ -236,14 +236,12 @@ class Observations:
 
 def mechanical_phasor(segment: Segment, rotor_teeth: int, per_revolution: int = 1) -> complex:
     """Mean of e^{jnθ} over a segment, θ the mechanical angle of the position demand and
-    n ``per_revolution``.
-
-    One mechanical revolution is 4·m·Nr microsteps; within a segment the demand is
-    a line, so the mean of the phasor is its value at mid-segment times a sinc.
+    n ``per_revolution``: within a segment the demand is a line, so the mean of the
+    phasor is its value at mid-segment times a sinc.
     """
-    per_rev = 4.0 * segment.microsteps_per_fullstep * rotor_teeth
     n = np.linspace(0.0, segment.samples, _MECHANICAL_SAMPLES)
-    theta = 2.0 * math.pi * (segment.position0 + segment.microsteps_per_sample * n) / per_rev
+    theta = mechanical_angle(segment.position0 + segment.microsteps_per_sample * n,
+                             segment.microsteps_per_fullstep, rotor_teeth)
     return complex(np.mean(np.exp(1j * per_revolution * theta)))
 
 
