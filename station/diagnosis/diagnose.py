@@ -35,7 +35,8 @@
 5. Be honest about the unknown: when the best model still leaves held-out
    residual well beyond the noise, that is said, with where it is, and an id
    is kept only if it explains more of the mismatch than is left unexplained:
-   physics that no id describes is never given the nearest id.
+   physics that no id describes is never given the nearest id. What the named
+   groups' own errors may leave (the share of step 4) is not such physics.
 
 Thresholds are stated in units of the measurement's own noise (χ²), so they
 carry over to recordings from other benches and simulators.
@@ -1424,9 +1425,10 @@ def name_effects(search: Search, progress: Callable[[str], None] | None = None,
     bend = best.spec.sensor_bend
     left = unexplained_of(best)
     if left.significant:
-        excess = left.chi2 - left.values
         # An id must explain more of the mismatch than is left unexplained, or it may only
-        # be soaking up physics that has no id.
+        # be soaking up physics that has no id. What the named groups' own errors may leave
+        # (``MODEL_ERROR_SHARE`` of what they took) is no such physics.
+        excess = left.chi2 - left.values - MODEL_ERROR_SHARE * best.explained
         while best.effects:
             lacking = dict(zip(best.effects, search.get_all(
                 (best.effects - {e}, bend) for e in best.effects), strict=True))

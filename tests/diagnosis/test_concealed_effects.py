@@ -27,14 +27,17 @@ import statistics
 import zlib
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import station.sim.concealed as concealed_module
+from station.characterize import diagnose_recording
 from station.core import Effect, LoadKind, Trims
 from station.diagnosis.fit import HeldOut
 from station.diagnosis.observations import NotDiagnosable
+from station.paths import HOME_ENV
 from station.schedules import random_characterization
 from station.sim.concealed import (
     CLASSES,
@@ -51,6 +54,7 @@ from station.sim.concealed import (
     fresh_seeds,
     named,
     plan_trial,
+    record_trial,
     twin_excess,
     weakest_part,
 )
@@ -154,6 +158,25 @@ def test_a_pair_of_strong_effects_is_measured_with_the_other_one_fitted() -> Non
     recorded = simulate_timeline(plan.unit, plan.schedule, seed=11, loss=plan.loss,
                                  substeps=PLANT_SUBSTEPS)
     assert twin_excess(plan, recorded) > 20 * VISIBLE_EXCESS
+
+
+def test_a_weak_partner_is_kept_when_what_is_left_is_the_strong_effects_own_error(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Flux harmonics of 0.6-0.7 % of Lm1 beside a rotor eccentricity on a disk (seed
+    1797214043, drawn fresh by a benchmark run): the flux harmonics took 7 million of the
+    nominal χ², and with both fitted 655 was left over the noise on 511 held-out values,
+    at orders 4-7 beside the flux's own, where the eccentricity gained 481. Counted as
+    physics without an id, that remainder dropped the eccentricity; it is a tenth of a
+    permille of what the flux took, well within what a group's own errors may leave. The
+    remainder is still reported."""
+    monkeypatch.setenv(HOME_ENV, str(tmp_path / "home"))
+    plan = plan_trial(Case(TrialClass(frozenset({Effect.FLUX_HARMONICS,
+                                                 Effect.ROTOR_ECCENTRICITY})), 1797214043))
+    (tmp_path / "truth").mkdir()
+    out = record_trial(plan, tmp_path / "unit.blf", tmp_path / "truth" / "unit.json")
+    doc = diagnose_recording(out, write_report=False, workers=2).as_dict()
+    assert {e for e, _ in named(doc)} == {"flux_harmonics", "rotor_eccentricity"}, doc["effects"]
+    assert doc["unexplained"]["significant"]
 
 
 @pytest.mark.parametrize(("effects", "refused", "excess"), [
