@@ -101,9 +101,11 @@ from station.diagnosis.groups import (
 from station.diagnosis.model import ChainKind, Model, ModelSpec, chain_for
 from station.diagnosis.observations import (
     ConditionKey,
+    Holds,
     NotDiagnosable,
     Observations,
     observe,
+    settled_holds,
 )
 
 SIGNIFICANT_CONFIDENCE = 0.999
@@ -1084,9 +1086,14 @@ def _fit_job(obs: Observations, nominal_chi2: float, job: _Job) -> Candidate:
         result = never_worse(model, result, job.base, start)
     else:
         result = fit_spec(obs, job.spec, job.base, job.free)
-        if Effect.SENSOR_CLOCK_DRIFT in job.spec.effects:
+        if (Effect.SENSOR_CLOCK_DRIFT in job.spec.effects
+                and Effect.SENSOR_CLOCK_DRIFT not in job.base.model.spec.effects):
             # A sensor may hold its latest sample per SYNC (a sawtooth of delays) or
-            # stamp its own: both forms are tried, the better one kept.
+            # stamp its own: both forms are tried where the clock first enters, the
+            # better one kept, and a model grown from it keeps that form (``Search._job``).
+            # The form is the sensor's, not the other groups': fitted again in every
+            # larger model it doubled the cost of each, most of a drifting clock's
+            # diagnosis.
             other = fit_spec(obs, replace(job.spec, clock_wraps=not job.spec.clock_wraps),
                              job.base, job.free)
             if other.chi2 < result.chi2:
@@ -1250,6 +1257,9 @@ class Search:
         earlier = self.previous.get(key)
         spec = (earlier.fit.model.spec if earlier is not None
                 else replace(self.nominal.spec, effects=effects, sensor_bend=bend))
+        if earlier is None and Effect.SENSOR_CLOCK_DRIFT in base.effects:
+            # The sensor's clock keeps the form its smaller model chose (``_fit_job``).
+            spec = replace(spec, clock_wraps=base.spec.clock_wraps)
         return _Job(spec, base.fit, self.free, None if earlier is None else earlier.fit)
 
     def refined(self, tests: Iterable[Test]) -> list[Test]:
@@ -1513,19 +1523,36 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
             read = aligned(timeline)
         timeline, first = read.timeline, read.first
         fits = fit_nominal(first, run=run)
-        obs, seen = first, [first.segments]
+        obs, seen, kept = first, [settled_holds(timeline)], [_kept(first)]
         for _ in range(SETTLE_PASSES):
-            settled = with_axes_checked(
-                observe(timeline, settle_fallback=settle_fallback(fits.free)))
-            if settled.segments in seen:
-                break  # settled as before: the chain agrees with the segments it settled
+            # A pass that keeps the holds an earlier one kept, each settled the same way,
+            # changes only the ringing poles they start from (their prior, which moves a
+            # little with every nominal fit): the chain agrees with the segments it
+            # settled, and the settling ends. Asked first of the steady segments alone
+            # (the cheap part of an observation), then of those the observation keeps.
+            # Development trial detent_torque+flux_harmonics@101, a belt: 111 holds
+            # twice, each pole a few percent off the pass before, observed and fitted
+            # again for 6 s of its 62.
+            fallback = settle_fallback(fits.free)
+            holds = settled_holds(timeline, settle_fallback=fallback)
+            if holds in seen:
+                break
+            seen.append(holds)
+            settled = with_axes_checked(observe(timeline, settle_fallback=fallback))
+            if _kept(settled) in kept:
+                break
             obs = settled
-            seen.append(obs.segments)
+            kept.append(_kept(obs))
             if progress is not None:
                 progress(f"segments settled by the fitted chain: {obs.model_settled}, "
                          f"with its ringing fitted out: {obs.ringing}")
             fits = fit_nominal(obs, previous=fits, run=run)
         return obs, fits
+
+
+def _kept(obs: Observations) -> Holds:
+    """The holds an observation kept, as ``settled_holds`` gives them."""
+    return tuple((s.start, s.stop, s.settling) for s in obs.segments)
 
 
 @dataclass(frozen=True)

@@ -67,6 +67,11 @@ HELD_SHRINK = (1.0, 0.5, 0.25, 0.125, 0.0)
 """Fractions of the Gauss-Newton step tried when the linear prediction is not trusted."""
 TOURNAMENT_NFEV = 12
 """Evaluations of the short polish that picks among many starts (``best_of``)."""
+HEAT_NFEV = 3
+"""Evaluations of the first heat of a tournament of more than ``HEAT_FIELD`` starts: only
+its better half goes on to the rest of the short polish (``best_of``)."""
+HEAT_FIELD = 3
+"""Starts a tournament polishes to ``TOURNAMENT_NFEV`` without a heat before."""
 PUSH_CHI2 = 9.0
 """A bound pressed this hard (χ² it would give back, 3σ) is a finding, not a rest."""
 
@@ -360,7 +365,7 @@ def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = 
     """
     best: Fit | None = None
     if finalists is not None and len(chosen) > finalists:
-        short = sorted(polish_all(model, chosen, TOURNAMENT_NFEV, run), key=lambda f: f.chi2)
+        short = _short_polishes(model, chosen, finalists, run)
         best = short[0]
         # A finalist whose short polish already converged has nothing left to gain.
         chosen = [f.params for f in short[:finalists] if not f.converged]
@@ -370,6 +375,26 @@ def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = 
     if best is None:
         return _unevaluated(model, chosen)
     return best
+
+
+def _short_polishes(model: Model, chosen: list[NDArray[np.float64]], finalists: int,
+                    run: Mapper) -> list[Fit]:
+    """``chosen`` polished for ``TOURNAMENT_NFEV`` evaluations, best first; of a field
+    wider than ``HEAT_FIELD``, only the better half after ``HEAT_NFEV`` goes on.
+
+    Most of a tournament's cost is starts that end where a better one does, or worse:
+    on two development trials (39 tournaments, 253 starts) the start that ended best
+    after the whole short polish was in the better half after three evaluations in every
+    tournament, and a heat costs a third fewer evaluations. A start that converged in
+    the heat has nothing left to gain and keeps its place.
+    """
+    if len(chosen) <= max(HEAT_FIELD, finalists):
+        return sorted(polish_all(model, chosen, TOURNAMENT_NFEV, run), key=lambda f: f.chi2)
+    heat = sorted(polish_all(model, chosen, HEAT_NFEV, run), key=lambda f: f.chi2)
+    ahead = heat[:max(HEAT_FIELD, finalists + 1, (len(heat) + 1) // 2)]
+    going = [f for f in ahead if not f.converged]
+    later = polish_all(model, [f.params for f in going], TOURNAMENT_NFEV - HEAT_NFEV, run)
+    return sorted([*(f for f in ahead if f.converged), *later], key=lambda f: f.chi2)
 
 
 def _unevaluated(model: Model, starts: list[NDArray[np.float64]]) -> Fit:

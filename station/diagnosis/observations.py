@@ -21,8 +21,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.analysis.harmonics import JOINT_ORDERS, Harmonics
-from station.analysis.pipeline import AnalysisOptions, Measured, group_conditions, measure
-from station.analysis.segments import Rejected, Segment, SettleFallback, Settling, mechanical_angle
+from station.analysis.pipeline import (
+    AnalysisOptions,
+    Measured,
+    group_conditions,
+    measure,
+    tangential_signal,
+)
+from station.analysis.segments import (
+    Rejected,
+    Segment,
+    SettleFallback,
+    Settling,
+    mechanical_angle,
+    steady_segments,
+)
 from station.analysis.timeline import Timeline
 from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Axis
 from station.errors import InputError
@@ -273,6 +286,29 @@ def _refuse_unless_characterization(segments: list[Segment], sync_period_s: floa
                          f"{NEEDED_SCHEDULE}")
 
 
+def _options(orders: int, settle_fallback: SettleFallback | None) -> AnalysisOptions:
+    return AnalysisOptions(
+        orders=max(orders, DEMODULATED_ORDERS), settle_fallback=settle_fallback,
+        settle_orders=tuple(range(1, orders + 1)), white_noise=True)
+
+
+Holds = tuple[tuple[int, int, Settling], ...]
+"""Which samples each steady segment holds and what settled it (``settled_holds``)."""
+
+
+def settled_holds(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
+                  settle_fallback: SettleFallback | None = None) -> Holds:
+    """The steady segments ``observe`` starts from, each as the samples it holds and what
+    settled it, before their ringing is measured and they are demodulated (most of an
+    observation's cost): whether another pass of the diagnosis's settling would keep
+    other holds."""
+    options = _options(orders, settle_fallback)
+    segments, _ = steady_segments(
+        timeline, tangential_signal(timeline), settle_periods=options.settle_periods,
+        settle_fallback=settle_fallback, settle_orders=options.settle_orders)
+    return tuple((s.start, s.stop, s.settling) for s in segments)
+
+
 def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
             settle_fallback: SettleFallback | None = None) -> Observations:
     """Segment the run and demodulate every steady segment to ``orders`` harmonics.
@@ -283,9 +319,7 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     fitted (too few samples per period for it) are dropped rather than carried
     with a NaN, so every row is whole; every stretch left out is in ``skipped``.
     """
-    measured, rejected = measure(timeline, AnalysisOptions(
-        orders=max(orders, DEMODULATED_ORDERS), settle_fallback=settle_fallback,
-        settle_orders=tuple(range(1, orders + 1)), white_noise=True))
+    measured, rejected = measure(timeline, _options(orders, settle_fallback))
     conditions = group_conditions(measured, timeline.sync_period_s)
     keys: list[ConditionKey] = []
     rows: list[tuple[int, Measured]] = []
