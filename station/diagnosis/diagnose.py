@@ -101,9 +101,9 @@ from station.diagnosis.groups import (
 from station.diagnosis.model import ChainKind, Model, ModelSpec, chain_for
 from station.diagnosis.observations import (
     ConditionKey,
-    Holds,
     NotDiagnosable,
     Observations,
+    holds_of,
     observe,
     settled_holds,
 )
@@ -1523,7 +1523,7 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
             read = aligned(timeline)
         timeline, first = read.timeline, read.first
         fits = fit_nominal(first, run=run)
-        obs, seen, kept = first, [settled_holds(timeline)], [_kept(first)]
+        obs, seen, kept = first, [settled_holds(timeline)], [holds_of(first.segments)]
         for _ in range(SETTLE_PASSES):
             # A pass that keeps the holds an earlier one kept, each settled the same way,
             # changes only the ringing poles they start from (their prior, which moves a
@@ -1539,20 +1539,15 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
                 break
             seen.append(holds)
             settled = with_axes_checked(observe(timeline, settle_fallback=fallback))
-            if _kept(settled) in kept:
+            if holds_of(settled.segments) in kept:
                 break
             obs = settled
-            kept.append(_kept(obs))
+            kept.append(holds_of(obs.segments))
             if progress is not None:
                 progress(f"segments settled by the fitted chain: {obs.model_settled}, "
                          f"with its ringing fitted out: {obs.ringing}")
             fits = fit_nominal(obs, previous=fits, run=run)
         return obs, fits
-
-
-def _kept(obs: Observations) -> Holds:
-    """The holds an observation kept, as ``settled_holds`` gives them."""
-    return tuple((s.start, s.stop, s.settling) for s in obs.segments)
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,7 @@ turns (friction depends on the load's velocity, mean plus ripple).
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -306,6 +307,12 @@ def settled_holds(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     segments, _ = steady_segments(
         timeline, tangential_signal(timeline), settle_periods=options.settle_periods,
         settle_fallback=settle_fallback, settle_orders=options.settle_orders)
+    return holds_of(segments)
+
+
+def holds_of(segments: Iterable[Segment]) -> Holds:
+    """``segments`` as ``settled_holds`` gives them: the samples each holds and what
+    settled it."""
     return tuple((s.start, s.stop, s.settling) for s in segments)
 
 
