@@ -703,7 +703,9 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
         chosen += chosen_starts(model, [unbent, *(model.with_values(unbent, v) for e in added
                                                   if e in GROUP_STARTS
                                                   for v in GROUP_STARTS[e](model, unbent))], 2)
-    return never_worse(model, best_of(model, chosen, finalists=FINALISTS), base, start)
+    # A coupling's starts are chains spread over a grid: no first heat (GROUP_TOURNAMENT).
+    return never_worse(model, best_of(model, chosen, finalists=FINALISTS,
+                                      heat=not added & GROUP_TOURNAMENT), base, start)
 
 
 def never_worse(model: Model, result: Fit, base: Fit, start: NDArray[np.float64]) -> Fit:

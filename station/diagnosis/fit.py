@@ -353,7 +353,7 @@ def chosen_starts(model: Model, starts: list[NDArray[np.float64]], keep: int,
 
 
 def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = _MAX_NFEV,
-            finalists: int | None = None, run: Mapper = map) -> Fit:
+            finalists: int | None = None, heat: bool = True, run: Mapper = map) -> Fit:
     """The best polish from ``chosen``; with ``finalists``, each is first polished for
     ``TOURNAMENT_NFEV`` evaluations and only that many of the best go on.
 
@@ -361,11 +361,12 @@ def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = 
     chain a little off its modes then ranks below one with none in band), and most of a
     full polish is spent creeping along the valley of the start it began in: a model
     with many starts (a bent nominal's regridded chain, the group's own estimates, the
-    unbent chain) spends its budget on the few that lead somewhere.
+    unbent chain) spends its budget on the few that lead somewhere. ``heat``: whether a
+    wide field has the first heat (``_short_polishes``).
     """
     best: Fit | None = None
     if finalists is not None and len(chosen) > finalists:
-        short = _short_polishes(model, chosen, finalists, run)
+        short = _short_polishes(model, chosen, finalists, run, heat)
         best = short[0]
         # A finalist whose short polish already converged has nothing left to gain.
         chosen = [f.params for f in short[:finalists] if not f.converged]
@@ -378,7 +379,7 @@ def best_of(model: Model, chosen: list[NDArray[np.float64]], *, max_nfev: int = 
 
 
 def _short_polishes(model: Model, chosen: list[NDArray[np.float64]], finalists: int,
-                    run: Mapper) -> list[Fit]:
+                    run: Mapper, heat: bool = True) -> list[Fit]:
     """``chosen`` polished for ``TOURNAMENT_NFEV`` evaluations, best first; of a field
     wider than ``HEAT_FIELD``, only the better half after ``HEAT_NFEV`` goes on.
 
@@ -387,12 +388,15 @@ def _short_polishes(model: Model, chosen: list[NDArray[np.float64]], finalists: 
     after the whole short polish was in the better half after three evaluations in all
     but 4, each a group patching a bent nominal model (χ² in the millions, its gain
     deciding nothing), for a third fewer evaluations. A start that converged in the heat
-    has nothing left to gain and keeps its place.
+    has nothing left to gain and keeps its place. Without ``heat`` every start has the
+    whole short polish: a field of chains spread over a grid, whose χ² after three
+    evaluations says how near the base a chain starts, not which basin it is in
+    (``groups.GROUP_TOURNAMENT``).
     """
-    if len(chosen) <= max(HEAT_FIELD, finalists):
+    if not heat or len(chosen) <= max(HEAT_FIELD, finalists):
         return sorted(polish_all(model, chosen, TOURNAMENT_NFEV, run), key=lambda f: f.chi2)
-    heat = sorted(polish_all(model, chosen, HEAT_NFEV, run), key=lambda f: f.chi2)
-    ahead = heat[:max(HEAT_FIELD, finalists + 1, (len(heat) + 1) // 2)]
+    heated = sorted(polish_all(model, chosen, HEAT_NFEV, run), key=lambda f: f.chi2)
+    ahead = heated[:max(HEAT_FIELD, finalists + 1, (len(heated) + 1) // 2)]
     going = [f for f in ahead if not f.converged]
     later = polish_all(model, [f.params for f in going], TOURNAMENT_NFEV - HEAT_NFEV, run)
     return sorted([*(f for f in ahead if f.converged), *later], key=lambda f: f.chi2)

@@ -288,7 +288,12 @@ best two by their χ² before any polish: a coupling's χ² there says little ab
 basin. Solving a strong detent's linear parts at each start favours any frequency where
 the ripple it leaves is large; on development belt @1838253693 (detent torque and a
 second compliance at 285 Hz) the two best-ranked starts settled at χ² 690, one ranked
-lower at 512 with the coupling at 296 Hz, and the coupling was named only then."""
+lower at 512 with the coupling at 296 Hz, and the coupling was named only then.
+
+Nor does their tournament have a first heat (``fit.best_of``): on development belt
+load_resonance@202 (rotor, coupling and pulley, belt, load) the start that polished to the
+plant's chain (χ² 1,206) stood at 1.2 million after three evaluations, behind ten starts
+that had not left the base, and was cut."""
 
 
 # --------------------------------------------------------------------------- parameters

@@ -792,6 +792,28 @@ def test_a_short_polish_of_every_start_picks_the_ones_worth_polishing_in_full() 
     assert counted.calls < full  # 397 against 447 when written
 
 
+def test_a_coupling_behind_a_belt_is_found_from_a_start_that_begins_far_off() -> None:
+    """A coupling's starts are chains spread over the grid, and three evaluations say
+    little about which basin a chain is in: its tournament has no first heat. Development
+    belt load_resonance@202 (rotor, coupling and pulley, belt, load: modes 44, 111 and
+    278 Hz): the start that polishes to the plant's chain was at 1.2 million after three
+    evaluations, in the lower half behind starts that stayed at the base, and was cut;
+    the coupling then settled on a sliver of the rotor's inertia (χ² 6,089 for 1,597
+    degrees of freedom) and the diagnosis named magnetic saturation instead."""
+    case = Case(TrialClass(frozenset({Effect.LOAD_RESONANCE})), 202)  # development seed
+    mechanics = plan_trial(case).unit.mechanics
+    assert mechanics.coupling is not None and mechanics.belt is not None
+    nominal = _case_nominal(case)
+    found = _with(nominal, Effect.LOAD_RESONANCE)
+    assert nominal.balanced.chi2 > 100.0 * nominal.balanced.dof  # a bent nominal belt
+    assert found.chi2 < 1.2 * found.dof
+    fitted_hz = math.exp(found.scalar("log_coupling_hz"))
+    assert abs(math.log(fitted_hz / mechanics.coupling.resonance_hz)) < 0.1
+    rotor = plan_trial(case).unit.motor.rotor_inertia_kgm2
+    pulley = mechanics.belt.motor_pulley_inertia_kgm2
+    assert abs(found.scalar("coupling_fraction") - pulley / (rotor + pulley)) < 0.1
+
+
 def test_a_model_grown_from_a_drifting_clock_fits_the_clock_only_in_the_form_it_chose(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Whether the sensor holds its latest sample per SYNC or stamps its own is the
