@@ -798,7 +798,7 @@ def test_a_coupling_behind_a_belt_is_found_from_a_start_that_begins_far_off() ->
     belt load_resonance@202 (rotor, coupling and pulley, belt, load: modes 44, 111 and
     278 Hz): the start that polishes to the plant's chain was at 1.2 million after three
     evaluations, in the lower half behind starts that stayed at the base, and was cut;
-    the coupling then settled on a sliver of the rotor's inertia (χ² 6,089 for 1,597
+    the coupling then settled on a sliver of the rotor's inertia (χ² 6,089 for 1,594
     degrees of freedom) and the diagnosis named magnetic saturation instead."""
     case = Case(TrialClass(frozenset({Effect.LOAD_RESONANCE})), 202)  # development seed
     unit = plan_trial(case).unit
