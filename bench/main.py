@@ -19,6 +19,7 @@ from bench import (
     bench_speed,
     calibration,
     diagnosis,
+    diagnosis_speed,
     history_speed,
     plant_speed,
     recording_memory,
@@ -50,6 +51,7 @@ def _measures(minute: MinuteRecording) -> dict[str, Measure]:
         "analysis_memory": lambda: analysis_memory.measure(minute),
         "history_speed": history_speed.measure,
         "calibration": calibration.measure,
+        "diagnosis_speed": diagnosis_speed.measure,
         "diagnosis": diagnosis.measure,
         "soak": soak.measure,
     }

@@ -81,11 +81,13 @@ from station.diagnosis.fit import (
     ParameterState,
     best_of,
     chosen_starts,
+    first_passes_shared,
     fit,
     held_out,
     judge_parameters,
     polish,
     polish_all,
+    rank_passed,
     screen,
     sigmas,
     solve_linear,
@@ -120,6 +122,14 @@ REGRID_CHI2 = 3.0
 started from the chain grid."""
 REGRID_KEEP = 2
 """Best chain-grid points (with the new groups solved) searched from when regridding."""
+GRID_SHARED = frozenset({Effect.FLUX_HARMONICS, Effect.CURRENT_DISTORTION, Effect.DETENT_TORQUE,
+                         Effect.RELUCTANCE_TORQUE, Effect.MAGNETIC_SATURATION,
+                         Effect.ROTOR_ECCENTRICITY})
+"""Groups whose chain-grid first passes, when each is tried alone on a bent nominal, are
+made from one model holding them all (``fit.first_passes_shared``): every block of theirs
+is linear and starts at zero, so at a grid point they leave the nominal's motion as it
+is and only add rows to its linear design. The others (a coupling, a clock, a current
+loop's lag, friction's smoothing) start where the motion differs."""
 REWEIGHT_CHANGE = math.log(1.3)
 """Weights that moved by more than 30 % (at the 99th percentile) call for a second pass."""
 PROMISING = 4
@@ -565,8 +575,11 @@ def fit_nominal(obs: Observations, *, previous: Nominal | None = None,
     starts = nominal_starts(model)
     if previous is not None:
         starts.append(_transplant(model, previous.free))
-    ranked = screen(model, starts, exact=GRID_EXACT, run=run)
-    split = screen(model, starts, split=True, exact=GRID_EXACT, run=run)
+    # Both rankings from one linear design per point.
+    passed = first_passes_shared(model, [model, model], starts, len(starts),
+                                 split=[False, True], run=run)
+    ranked = rank_passed(model, passed[0], GRID_EXACT, run=run)
+    split = rank_passed(model, passed[1], GRID_EXACT, split=True, run=run)
     chosen = [x for _, x in ranked[:NOMINAL_KEEP]] + [x for _, x in split[:SPLIT_KEEP]]
     diverse = _diverse(model, split, chosen)
     starts = chosen + diverse
@@ -665,10 +678,13 @@ def _balanced(free: Fit, obs: Observations, spec: ModelSpec | None = None, *,
     return fit(model, [start, _refine_angles(model, start)], keep=2, max_nfev=80, run=run)
 
 
-def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None) -> Fit:
+def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None,
+             grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None) -> Fit:
     """A model with more term groups than ``base``, started from it, from the unbent
     nominal fit ``free`` and from each new group's own starting points; and, when the base
-    fits badly (it has bent its chain to hide what it lacks), from the chain grid again."""
+    fits badly (it has bent its chain to hide what it lacks), from the chain grid again
+    (``grid``: its best points after their first linear pass, made already, each with
+    the χ² that pass predicted: ``Search.shared_grid``)."""
     model = Model(spec, obs)
     start = _transplant(model, base)
     starts = [start]
@@ -693,8 +709,9 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
         # The nominal bent its chain to hide what it lacks: the chain grid again, with the
         # new groups' linear parts solved at every point, finds the chain they leave
         # behind. Larger models start from the chain their best subset found.
-        estimated += [x for _, x in screen(model, nominal_starts(model),
-                                            exact=GRID_EXACT)[:REGRID_KEEP]]
+        ranked = (screen(model, nominal_starts(model), exact=GRID_EXACT) if grid is None
+                  else rank_passed(model, list(grid), GRID_EXACT))
+        estimated += [x for _, x in ranked[:REGRID_KEEP]]
     chosen = chosen_starts(model, starts, 2, estimated)
     if bent and free is not None:
         # The unbent chain and load angles, with the new groups' linear parts solved: these
@@ -1072,6 +1089,8 @@ class _Job:
     base: Fit  # the best fitted model one group smaller (or the same without bend)
     free: Fit  # the nominal model with free load angles
     earlier: Fit | None  # the same model fitted with the first pass's weights
+    # The chain grid's best points after their first pass, when made for many jobs at once.
+    grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None
 
 
 def _fit_job(obs: Observations, nominal_chi2: float, job: _Job) -> Candidate:
@@ -1087,7 +1106,7 @@ def _fit_job(obs: Observations, nominal_chi2: float, job: _Job) -> Candidate:
         result = fit(model, [job.earlier.params.copy(), start], keep=2)
         result = never_worse(model, result, job.base, start)
     else:
-        result = fit_spec(obs, job.spec, job.base, job.free)
+        result = fit_spec(obs, job.spec, job.base, job.free, job.grid)
         if (Effect.SENSOR_CLOCK_DRIFT in job.spec.effects
                 and Effect.SENSOR_CLOCK_DRIFT not in job.base.model.spec.effects):
             # A sensor may hold its latest sample per SYNC (a sawtooth of delays) or
@@ -1236,7 +1255,7 @@ class Search:
             # that no worker is left with one at the end while the others wait.
             batch = sorted((k for k in todo if (len(k[0]), k[1]) == size),
                            key=lambda k: Effect.SENSOR_CLOCK_DRIFT not in k[0])
-            jobs = [self._job(k) for k in batch]
+            jobs = self.shared_grid([self._job(k) for k in batch])
             if self.progress is not None:
                 self.progress("fitting " + ", ".join(job.spec.label() for job in jobs))
             self.cache.update(zip(batch, self._run(_fit_job, jobs), strict=True))
@@ -1249,6 +1268,30 @@ class Search:
             return [job(self.obs, chi2, *each) for each in zip(*args, strict=True)]
         return list(self.pool.map(job, itertools.repeat(self.obs), itertools.repeat(chi2),
                                   *args))
+
+    def shared_grid(self, jobs: list[_Job]) -> list[_Job]:
+        """``jobs``, those that will search the chain grid again for a group of
+        ``GRID_SHARED`` alone on a bent nominal (``fit_spec``) given their grid's first
+        passes, made for all of them from one linear design per point."""
+        nominal = self.nominal.fit
+        if nominal.chi2 <= REGRID_CHI2 * nominal.dof:
+            return jobs
+        sharing = [i for i, job in enumerate(jobs)
+                   if job.earlier is None and not job.spec.sensor_bend
+                   and not job.base.model.spec.effects and len(job.spec.effects) == 1
+                   and job.spec.effects <= GRID_SHARED]
+        if len(sharing) < 2:
+            return jobs
+        union = Model(replace(self.nominal.spec,
+                              effects=frozenset().union(*(jobs[i].spec.effects
+                                                          for i in sharing))), self.obs)
+        run: Mapper = map if self.pool is None else self.pool.map
+        passed = first_passes_shared(union, [Model(jobs[i].spec, self.obs) for i in sharing],
+                                     nominal_starts(union), GRID_EXACT, run=run)
+        out = list(jobs)
+        for i, points in zip(sharing, passed, strict=True):
+            out[i] = replace(jobs[i], grid=tuple(points))
+        return out
 
     def _job(self, key: Key) -> _Job:
         effects, bend = key

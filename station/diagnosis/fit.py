@@ -198,9 +198,20 @@ class _LinearSolve:
             out, predicted = step
         return out, predicted
 
-    def _pass(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64], float] | None:
+    def given(self, p: NDArray[np.float64], at_zero: NDArray[np.float64],
+              design: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+        """One pass from ``p`` on a linear design made elsewhere (``first_passes_shared``):
+        what ``run(p, 1)`` gives."""
+        if not self.free.any() and not self.pairs:
+            return p.copy(), math.inf
+        step = self._pass(p, (at_zero, design))
+        return (p.copy(), math.inf) if step is None else step
+
+    def _pass(self, p: NDArray[np.float64],
+              given: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+              ) -> tuple[NDArray[np.float64], float] | None:
         idx, free, pairs = self.idx, self.free, self.pairs
-        at_zero, design = self.model.linear_design(p)
+        at_zero, design = self.model.linear_design(p) if given is None else given
         a = design[free].T
         b = -at_zero - design[~free].T @ p[idx][~free]
         if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
@@ -262,18 +273,78 @@ def screen(model: Model, starts: list[NDArray[np.float64]], *, split: bool = Fal
     ``run`` maps over chunks of ``SCREEN_CHUNK`` starts (each start is independent)."""
     inside_low, inside_high = _inside(model)
     clipped = [np.clip(start, inside_low, inside_high) for start in starts]
-    rest: list[tuple[float, NDArray[np.float64]]] = []
-    if exact is None or len(starts) <= exact:
-        first, passes = clipped, 2
-    else:
+    if exact is not None and len(starts) > exact:
         # The first pass of every point; the best go on from where it left them.
         passed = _chunked(run, _first_passes, model, split, clipped)
-        quick = sorted(((chi2, x) for x, chi2 in passed), key=lambda item: item[0])
-        first, passes = [x for _, x in quick[:exact]], 1
-        rest = [(c, np.clip(x, inside_low, inside_high)) for c, x in quick[exact:]]
-    screened = _chunked(run, _last_passes, model, split, first, passes)
+        return rank_passed(model, passed, exact, split=split, run=run)
+    screened = _chunked(run, _last_passes, model, split, clipped, 2)
+    screened.sort(key=lambda item: item[0])
+    return screened
+
+
+def rank_passed(model: Model, passed: list[tuple[NDArray[np.float64], float]], exact: int,
+                *, split: bool = False, run: Mapper = map
+                ) -> list[tuple[float, NDArray[np.float64]]]:
+    """``screen``'s ranking of starts given after their first linear pass, each with the
+    χ² that pass predicted: the ``exact`` best given the second pass and their true χ²,
+    the others after them as the first pass ranked them."""
+    inside_low, inside_high = _inside(model)
+    quick = sorted(((chi2, x) for x, chi2 in passed), key=lambda item: item[0])
+    rest = [(c, np.clip(x, inside_low, inside_high)) for c, x in quick[exact:]]
+    screened = _chunked(run, _last_passes, model, split, [x for _, x in quick[:exact]], 1)
     screened.sort(key=lambda item: item[0])
     return screened + rest
+
+
+def first_passes_shared(union: Model, models: list[Model], starts: list[NDArray[np.float64]],
+                        keep: int, *, split: list[bool] | None = None, run: Mapper = map
+                        ) -> list[list[tuple[NDArray[np.float64], float]]]:
+    """For each of ``models``, the ``keep`` best of ``starts`` (given in ``union``'s layout)
+    after its first linear pass (``screen``, with its gain errors' difference solved
+    where ``split`` says), each with the χ² that pass predicted, from one linear design
+    per start.
+
+    ``union`` must hold every block of every model, its groups' blocks all linear and
+    zero at the starts: there each model's motion is the union's, and so is each linear
+    parameter's design row. Made with each group's own model, a belt's chain-grid first
+    passes for every group tried alone on a bent nominal were a fifth of its diagnosis
+    (development flux_harmonics@202, profiled): the same motions made again for each
+    group (and for both rankings of the nominal's own grid).
+    """
+    inside_low, inside_high = _inside(union)
+    clipped = [np.clip(start, inside_low, inside_high) for start in starts]
+    chunks = [clipped[i:i + SCREEN_CHUNK] for i in range(0, len(clipped), SCREEN_CHUNK)]
+    n = len(chunks)
+    splits = [False] * len(models) if split is None else split
+    parts = list(run(_shared_passes, [union] * n, [models] * n, [splits] * n, chunks))
+    out = []
+    for k in range(len(models)):
+        passed = [item for part in parts for item in part[k]]
+        # Stable, as ``rank_passed`` sorts: the first of equals stays first.
+        out.append(sorted(passed, key=lambda item: item[1])[:keep])
+    return out
+
+
+def _shared_passes(union: Model, models: list[Model], split: list[bool],
+                   starts: list[NDArray[np.float64]]
+                   ) -> list[list[tuple[NDArray[np.float64], float]]]:
+    union_linear = {int(i): row for row, i in enumerate(union.linear_index())}
+    picks, rows, solvers = [], [], []
+    for model, gains_split in zip(models, split, strict=True):
+        # Where each of the model's parameters sits in the union's layout.
+        pick = np.concatenate([np.arange(union.layout.slices[b.name].start,
+                                         union.layout.slices[b.name].stop)
+                               for b in model.layout.blocks])
+        picks.append(pick)
+        rows.append(np.array([union_linear[int(pick[i])] for i in model.linear_index()],
+                             dtype=np.intp))
+        solvers.append(_solver(model, gains_split))
+    out: list[list[tuple[NDArray[np.float64], float]]] = [[] for _ in models]
+    for x in starts:
+        at_zero, design = union.linear_design(x)
+        for k, (pick, row, solver) in enumerate(zip(picks, rows, solvers, strict=True)):
+            out[k].append(solver.given(x[pick], at_zero, design[row]))
+    return out
 
 
 SCREEN_CHUNK = 16

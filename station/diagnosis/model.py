@@ -40,7 +40,7 @@ model, so any combination of them is a model too.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any, Generic, TypeVar
@@ -450,6 +450,28 @@ class _Stage:
 
 
 @dataclass(frozen=True)
+class _Stages:
+    """One stage of many chains at once (``Model.chains``): each ``_Stage`` field as an
+    array over the chains, (m, 1, 1), so that it broadcasts over segments and orders."""
+
+    inertia: NDArray[np.float64]
+    damping: NDArray[np.float64]
+    spring: NDArray[np.float64]
+    spring_damping: NDArray[np.float64]
+    ratio: NDArray[np.float64]
+
+    @classmethod
+    def of(cls, stages: list[_Stage]) -> _Stages:
+        def column(values: list[float]) -> NDArray[np.float64]:
+            return np.asarray(values, dtype=np.float64)[:, None, None]
+
+        return cls(column([st.inertia for st in stages]), column([st.damping for st in stages]),
+                   column([st.spring for st in stages]),
+                   column([st.spring_damping for st in stages]),
+                   column([st.ratio for st in stages]))
+
+
+@dataclass(frozen=True)
 class Transfer:
     """The chain per segment and order, linear in the load's angular acceleration α and
     the friction torque F acting on the load: rotor angle θ = A·α + B·F, torque the
@@ -459,6 +481,11 @@ class Transfer:
     b: NDArray[np.complex128]
     c: NDArray[np.complex128]
     d: NDArray[np.complex128]
+
+
+Chain = tuple[Transfer, NDArray[np.complex128] | None, NDArray[np.float64]]
+"""The chain's transfer at the modelled orders, its θ per α above them, and the mean
+torque its damping takes (``Model.chains``)."""
 
 
 @dataclass(frozen=True)
@@ -784,9 +811,7 @@ class Model:
         # would otherwise make them again, most of a friction model's evaluation.
         self._friction_shapes: _Memo[tuple[NDArray[np.float64], ...]] = self._memo(
             (*sensor, "log_friction_smoothing"))
-        self._chain: _Memo[tuple[Transfer, NDArray[np.complex128] | None,
-                                 NDArray[np.float64]]] = self._memo(
-            CHAIN_KEYS)
+        self._chain: _Memo[Chain] = self._memo(CHAIN_KEYS)
         self._coefficients: _Memo[tuple[NDArray[np.float64], NDArray[np.complex128],
                                         NDArray[np.float64], NDArray[np.complex128]]] = (
             self._memo(CURRENT_KEYS))
@@ -867,10 +892,12 @@ class Model:
             load,
         ]
 
-    def transfer(self, stages: list[_Stage], s: NDArray[np.complex128] | None = None
-                 ) -> Transfer:
+    def transfer(self, stages: Sequence[_Stage | _Stages],
+                 s: NDArray[np.complex128] | None = None) -> Transfer:
         """Backwards from the load: each spring's twist carries the torque downstream of it
-        (at the modelled orders unless ``s`` gives others)."""
+        (at the modelled orders unless ``s`` gives others); of many chains at once, (m, S,
+        K) each, when ``stages`` holds them (``_Stages``), every number the same as each
+        chain's alone (the arithmetic is elementwise)."""
         s = self.jw if s is None else np.asarray(s, dtype=np.complex128)
         last = stages[-1]
         theta_a = np.asarray(1.0 / (s * s), dtype=np.complex128)
@@ -1157,13 +1184,40 @@ class Model:
                  else beyond / (self.sensor_response(p, beyond=True) * self.radius))
         return sensor, alpha, above
 
-    def _chain_transfer(self, p: NDArray[np.float64]) -> tuple[
-            Transfer, NDArray[np.complex128] | None, NDArray[np.float64]]:
-        """The chain's transfer at the modelled orders, its θ per α above them, and the
-        mean torque its damping takes (``drag``)."""
+    def _chain_transfer(self, p: NDArray[np.float64]) -> Chain:
+        """The chain at ``p`` (``Chain``)."""
         stages = self.stages(p)
         above = None if self.beyond is None else self.transfer(stages, self.jw_beyond).a
         return self.transfer(stages), above, self._drag(stages)
+
+    def chains(self, p: NDArray[np.float64], points: list[NDArray[np.float64]]
+               ) -> list[Chain | None]:
+        """The chain at each of ``points`` whose chain parameters differ from ``p``'s, made
+        in one batch (None for the others: theirs is ``p``'s).
+
+        A Jacobian's chain columns each need a chain a step away, and one chain's transfer
+        is a few dozen operations on arrays of a few hundred values, each paying numpy's
+        call overhead: made one at a time, a belt's chains were an eighth of its
+        diagnosis (development load_resonance@202, profiled), most of them a Jacobian's."""
+        index = self._chain.index
+        key = p[index]
+        moved = [i for i, x in enumerate(points) if not np.array_equal(x[index], key)]
+        out: list[Chain | None] = [None] * len(points)
+        if not moved:
+            return out
+        each = [self.stages(points[i]) for i in moved]
+        batch = [_Stages.of([stages[j] for stages in each]) for j in range(len(each[0]))]
+        shape = (len(moved), *self.jw.shape)
+        t = self.transfer(batch)
+        a, b, c, d = (np.broadcast_to(x, shape) for x in (t.a, t.b, t.c, t.d))
+        above = None
+        if self.beyond is not None:
+            above = np.broadcast_to(self.transfer(batch, self.jw_beyond).a,
+                                    (len(moved), *self.jw_beyond.shape))
+        for n, (i, stages) in enumerate(zip(moved, each, strict=True)):
+            out[i] = (Transfer(a[n], b[n], c[n], d[n]), None if above is None else above[n],
+                      self._drag(stages))
+        return out
 
     def _motion(self, p: NDArray[np.float64]) -> Motion:
         x = self._inputs(p)
@@ -1180,9 +1234,11 @@ class Model:
         # trigonometry on the grid is most of a motion's own cost).
         return first.shifted(self.trim_lag(p, first))
 
-    def _inputs(self, p: NDArray[np.float64]) -> _Inputs:
+    def _inputs(self, p: NDArray[np.float64], chain: Chain | None = None) -> _Inputs:
+        """The motion's inputs at ``p``, its ``chain`` made already if given (``chains``)."""
         sensor, alpha, above = self._alpha.get(p, lambda: self._load_motion(p))
-        transfer, theta_above, drag = self._chain.get(p, lambda: self._chain_transfer(p))
+        transfer, theta_above, drag = (self._chain.get(p, lambda: self._chain_transfer(p))
+                                       if chain is None else chain)
         force, slope, mean_force = self._friction.get(
             p, lambda: self.friction_torque(p, alpha))
         taken = drag
@@ -1579,8 +1635,11 @@ class Model:
         m = lin.motion
         here = self._inputs(p)
         index = self._torque_index
-        inputs = [self._inputs(x) for x in points]
-        mirrored = [self._inputs(2.0 * p - x) for x in points]
+        opposite = [2.0 * p - x for x in points]
+        chains = self.chains(p, [*points, *opposite])
+        inputs = [self._inputs(x, c) for x, c in zip(points, chains, strict=False)]
+        mirrored = [self._inputs(x, c) for x, c in zip(opposite, chains[len(points):],
+                                                       strict=True)]
         whole = [i for i, (x, q) in enumerate(zip(inputs, points, strict=True))
                  if not (np.array_equal(q[index], p[index]) and np.array_equal(x.i_a, here.i_a)
                          and np.array_equal(x.i_b, here.i_b)

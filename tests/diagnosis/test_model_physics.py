@@ -26,7 +26,9 @@ from station.core import Effect
 from station.diagnosis import diagnose, observations
 from station.diagnosis.diagnose import (
     GRID_EXACT,
+    GRID_SHARED,
     MODEL_ERROR_SHARE,
+    REGRID_KEEP,
     Candidate,
     Nominal,
     Search,
@@ -46,10 +48,12 @@ from station.diagnosis.fit import (
     Fit,
     best_of,
     chosen_starts,
+    first_passes_shared,
     fit,
     held_out,
     jacobian,
     polish,
+    rank_passed,
     screen,
     sigmas,
 )
@@ -65,7 +69,9 @@ from station.diagnosis.groups import (
 from station.diagnosis.model import (
     FRICTION_SMOOTHING_MAX,
     GRID,
+    GROUP_BLOCKS,
     MIN_CLOCK_PPM,
+    BlockKind,
     ChainKind,
     Model,
     ModelSpec,
@@ -715,6 +721,51 @@ def test_a_grid_prescreened_by_its_first_linear_pass_keeps_the_exact_rankings_be
                 np.testing.assert_allclose(x_quick, x, rtol=1e-9, atol=1e-12)
 
 
+def test_a_chain_grid_passed_once_for_every_linear_group_ranks_as_each_group_alone() -> None:
+    """The first passes over a belt's grid are made once for all of ``GRID_SHARED`` (one
+    linear design per point, from a model holding every one of them): each group must
+    still get the points, and the χ², that screening the grid with its own model gives.
+    That holds only for groups all of whose blocks are linear and start at zero, so that
+    at a grid point they leave the nominal's motion as it is."""
+    timeline, _ = _clean(15)
+    obs = observe(timeline)
+    spec = ModelSpec(ChainKind.BELT)
+    for effect in GRID_SHARED:
+        blocks = GROUP_BLOCKS[effect](spec.with_effect(effect), obs)
+        assert all(b.kind is BlockKind.LINEAR and np.all(np.asarray(b.start) == 0.0)
+                   for b in blocks), effect
+    with threadpool_limits(limits=1, user_api="blas"):
+        union = Model(replace(spec, effects=GRID_SHARED), obs)
+        effects = sorted(GRID_SHARED)
+        models = [Model(spec.with_effect(e), obs) for e in effects]
+        shared = first_passes_shared(union, models, nominal_starts(union), GRID_EXACT)
+        for effect, model, passed in zip(effects, models, shared, strict=True):
+            assert len(passed) == GRID_EXACT
+            alone = screen(model, nominal_starts(model), exact=GRID_EXACT)[:REGRID_KEEP]
+            given = rank_passed(model, passed, GRID_EXACT)[:REGRID_KEEP]
+            for (chi2, x), (chi2_given, x_given) in zip(alone, given, strict=True):
+                assert chi2_given == pytest.approx(chi2, rel=1e-7), effect
+                np.testing.assert_allclose(x_given, x, rtol=1e-5, atol=1e-5, err_msg=effect)
+
+
+def test_both_rankings_of_the_nominal_grid_made_from_one_design_are_each_screens_own(
+) -> None:
+    """The nominal fit ranks its grid twice, with the gain errors held and with their
+    difference solved (``fit_nominal``); both first passes are made from one linear
+    design per point, and each ranking must be the one its own screen gives, to the bit."""
+    timeline, _ = _clean(15)
+    with threadpool_limits(limits=1, user_api="blas"):
+        model = Model(ModelSpec(ChainKind.BELT, dc_balance=False), observe(timeline))
+        starts = nominal_starts(model)
+        held, split = first_passes_shared(model, [model, model], starts, len(starts),
+                                          split=[False, True])
+        for passed, splits in ((held, False), (split, True)):
+            own = screen(model, starts, split=splits, exact=GRID_EXACT)
+            given = rank_passed(model, passed, GRID_EXACT, split=splits)
+            assert [c for c, _ in given] == [c for c, _ in own]
+            assert all(np.array_equal(x, y) for (_, x), (_, y) in zip(given, own, strict=True))
+
+
 def test_a_belt_whose_own_mode_lies_far_above_the_band_is_fitted_from_the_mode_it_swings_on(
 ) -> None:
     """Development seed 72 draws a clean belt whose load is 5.9 times the rotor side's
@@ -825,10 +876,10 @@ def test_a_model_grown_from_a_drifting_clock_fits_the_clock_only_in_the_form_it_
     clock = frozenset({Effect.SENSOR_CLOCK_DRIFT})
     forms: list[bool] = []
 
-    def counted(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None
-                ) -> Fit:
+    def counted(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None,
+                grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None) -> Fit:
         forms.append(spec.clock_wraps)
-        return fit_spec(obs, spec, base, free)
+        return fit_spec(obs, spec, base, free, grid)
 
     with threadpool_limits(limits=1, user_api="blas"):
         nominal = fit_nominal(obs)
