@@ -693,7 +693,7 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
     starts.append(zeroed)
     estimated = []
     added = spec.effects - base.model.spec.effects
-    bent = base.chi2 > REGRID_CHI2 * base.dof
+    bent = _bent(base)
     for effect in added:
         maker = GROUP_STARTS.get(effect)
         if maker is not None:
@@ -723,6 +723,12 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
     # A coupling's starts are chains spread over a grid: no first heat (GROUP_TOURNAMENT).
     return never_worse(model, best_of(model, chosen, finalists=FINALISTS,
                                       heat=not added & GROUP_TOURNAMENT), base, start)
+
+
+def _bent(base: Fit) -> bool:
+    """Whether ``base`` fits so badly that a larger model searches the chain grid again
+    (``REGRID_CHI2``)."""
+    return base.chi2 > REGRID_CHI2 * base.dof
 
 
 def never_worse(model: Model, result: Fit, base: Fit, start: NDArray[np.float64]) -> Fit:
@@ -1273,8 +1279,7 @@ class Search:
         """``jobs``, those that will search the chain grid again for a group of
         ``GRID_SHARED`` alone on a bent nominal (``fit_spec``) given their grid's first
         passes, made for all of them from one linear design per point."""
-        nominal = self.nominal.fit
-        if nominal.chi2 <= REGRID_CHI2 * nominal.dof:
+        if not _bent(self.nominal.fit):
             return jobs
         sharing = [i for i, job in enumerate(jobs)
                    if job.earlier is None and not job.spec.sensor_bend

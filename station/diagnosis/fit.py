@@ -184,28 +184,22 @@ class _LinearSolve:
         low, high = model.layout.bounds()
         self.low, self.high = low[idx][self.free], high[idx][self.free]
 
-    def run(self, p: NDArray[np.float64], passes: int) -> tuple[NDArray[np.float64], float]:
+    def run(self, p: NDArray[np.float64], passes: int,
+            given: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
+            ) -> tuple[NDArray[np.float64], float]:
         """``p`` after ``passes`` passes, and the χ² the last one predicts there (inf when
-        there was nothing to solve or the design was not finite)."""
+        there was nothing to solve or the design was not finite); the first pass on the
+        linear design ``given`` (``first_passes_shared``) when there is one."""
         out = p.copy()
         predicted = math.inf
         if not self.free.any() and not self.pairs:
             return out, predicted
-        for _ in range(passes):
-            step = self._pass(out)
+        for n in range(passes):
+            step = self._pass(out, given if n == 0 else None)
             if step is None:
                 break
             out, predicted = step
         return out, predicted
-
-    def given(self, p: NDArray[np.float64], at_zero: NDArray[np.float64],
-              design: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
-        """One pass from ``p`` on a linear design made elsewhere (``first_passes_shared``):
-        what ``run(p, 1)`` gives."""
-        if not self.free.any() and not self.pairs:
-            return p.copy(), math.inf
-        step = self._pass(p, (at_zero, design))
-        return (p.copy(), math.inf) if step is None else step
 
     def _pass(self, p: NDArray[np.float64],
               given: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
@@ -275,9 +269,9 @@ def screen(model: Model, starts: list[NDArray[np.float64]], *, split: bool = Fal
     clipped = [np.clip(start, inside_low, inside_high) for start in starts]
     if exact is not None and len(starts) > exact:
         # The first pass of every point; the best go on from where it left them.
-        passed = _chunked(run, _first_passes, model, split, clipped)
+        passed = _chunked(run, _first_passes, (model, split), clipped)
         return rank_passed(model, passed, exact, split=split, run=run)
-    screened = _chunked(run, _last_passes, model, split, clipped, 2)
+    screened = _chunked(run, _last_passes, (model, split), clipped, 2)
     screened.sort(key=lambda item: item[0])
     return screened
 
@@ -291,7 +285,7 @@ def rank_passed(model: Model, passed: list[tuple[NDArray[np.float64], float]], e
     inside_low, inside_high = _inside(model)
     quick = sorted(((chi2, x) for x, chi2 in passed), key=lambda item: item[0])
     rest = [(c, np.clip(x, inside_low, inside_high)) for c, x in quick[exact:]]
-    screened = _chunked(run, _last_passes, model, split, [x for _, x in quick[:exact]], 1)
+    screened = _chunked(run, _last_passes, (model, split), [x for _, x in quick[:exact]], 1)
     screened.sort(key=lambda item: item[0])
     return screened + rest
 
@@ -313,21 +307,17 @@ def first_passes_shared(union: Model, models: list[Model], starts: list[NDArray[
     """
     inside_low, inside_high = _inside(union)
     clipped = [np.clip(start, inside_low, inside_high) for start in starts]
-    chunks = [clipped[i:i + SCREEN_CHUNK] for i in range(0, len(clipped), SCREEN_CHUNK)]
-    n = len(chunks)
     splits = [False] * len(models) if split is None else split
-    parts = list(run(_shared_passes, [union] * n, [models] * n, [splits] * n, chunks))
-    out = []
-    for k in range(len(models)):
-        passed = [item for part in parts for item in part[k]]
-        # Stable, as ``rank_passed`` sorts: the first of equals stays first.
-        out.append(sorted(passed, key=lambda item: item[1])[:keep])
-    return out
+    per_start = _chunked(run, _shared_passes, (union, models, splits), clipped)
+    # Stable, as ``rank_passed`` sorts: the first of equals stays first.
+    return [sorted((row[k] for row in per_start), key=lambda item: item[1])[:keep]
+            for k in range(len(models))]
 
 
 def _shared_passes(union: Model, models: list[Model], split: list[bool],
                    starts: list[NDArray[np.float64]]
                    ) -> list[list[tuple[NDArray[np.float64], float]]]:
+    """Per start, each model's first pass (``first_passes_shared``)."""
     union_linear = {int(i): row for row, i in enumerate(union.linear_index())}
     picks, rows, solvers = [], [], []
     for model, gains_split in zip(models, split, strict=True):
@@ -339,11 +329,11 @@ def _shared_passes(union: Model, models: list[Model], split: list[bool],
         rows.append(np.array([union_linear[int(pick[i])] for i in model.linear_index()],
                              dtype=np.intp))
         solvers.append(_solver(model, gains_split))
-    out: list[list[tuple[NDArray[np.float64], float]]] = [[] for _ in models]
+    out = []
     for x in starts:
         at_zero, design = union.linear_design(x)
-        for k, (pick, row, solver) in enumerate(zip(picks, rows, solvers, strict=True)):
-            out[k].append(solver.given(x[pick], at_zero, design[row]))
+        out.append([solver.run(x[pick], 1, (at_zero, design[row]))
+                    for pick, row, solver in zip(picks, rows, solvers, strict=True)])
     return out
 
 
@@ -351,12 +341,13 @@ SCREEN_CHUNK = 16
 """Starts per task when a screen is spread over worker processes."""
 
 
-def _chunked(run: Mapper, task: Callable[..., list[Any]], model: Model, split: bool,
+def _chunked(run: Mapper, task: Callable[..., list[Any]], fixed: tuple[Any, ...],
              starts: list[NDArray[np.float64]], *extra: int) -> list[Any]:
-    """``task`` over ``starts`` in chunks, its answers in the order of the starts."""
+    """``task(*fixed, chunk, *extra)`` over ``starts`` in chunks, its answers in the order
+    of the starts."""
     chunks = [starts[i:i + SCREEN_CHUNK] for i in range(0, len(starts), SCREEN_CHUNK)]
     n = len(chunks)
-    args = [[model] * n, [split] * n, chunks, *([value] * n for value in extra)]
+    args = [*([value] * n for value in fixed), chunks, *([value] * n for value in extra)]
     return [item for part in run(task, *args) for item in part]
 
 

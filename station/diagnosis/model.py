@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from enum import StrEnum
 from typing import Any, Generic, TypeVar
 
@@ -462,13 +462,9 @@ class _Stages:
 
     @classmethod
     def of(cls, stages: list[_Stage]) -> _Stages:
-        def column(values: list[float]) -> NDArray[np.float64]:
-            return np.asarray(values, dtype=np.float64)[:, None, None]
-
-        return cls(column([st.inertia for st in stages]), column([st.damping for st in stages]),
-                   column([st.spring for st in stages]),
-                   column([st.spring_damping for st in stages]),
-                   column([st.ratio for st in stages]))
+        return cls(**{f.name: np.asarray([getattr(st, f.name) for st in stages],
+                                          dtype=np.float64)[:, None, None]
+                      for f in fields(cls)})
 
 
 @dataclass(frozen=True)
@@ -1637,7 +1633,8 @@ class Model:
         index = self._torque_index
         opposite = [2.0 * p - x for x in points]
         chains = self.chains(p, [*points, *opposite])
-        inputs = [self._inputs(x, c) for x, c in zip(points, chains, strict=False)]
+        inputs = [self._inputs(x, c) for x, c in zip(points, chains[:len(points)],
+                                                     strict=True)]
         mirrored = [self._inputs(x, c) for x, c in zip(opposite, chains[len(points):],
                                                        strict=True)]
         whole = [i for i, (x, q) in enumerate(zip(inputs, points, strict=True))
