@@ -186,6 +186,12 @@ def _white_variance(angle: NDArray[np.float64], y: NDArray[np.float64],
     return min(sigma2, float(residual @ residual) / float(used - wide.shape[1]))
 
 
+RANK_FLOOR = 1e-10
+"""Smallest |diagonal of R| of the decays' QR, relative to the largest, at which their
+columns count as independent: below it ``SteadyProjection.residual`` hands the fit to
+lstsq, whose rank decision the pole search was developed with."""
+
+
 @dataclass(frozen=True)
 class SteadyProjection:
     """A window's samples with its steady harmonics (DC and every order ``demodulate``
@@ -222,8 +228,18 @@ class SteadyProjection:
         takes them) leave, sample by sample."""
         d = _decay_design(self.times, decays, sweeps=sweeps)
         d = d - self.basis @ (self.basis.T @ d)
+        # A pole search calls this hundreds of times per hold: QR is about half the cost
+        # of the SVD behind lstsq, and gives the same residual while the columns are
+        # independent. Where they are not (a decay the window cannot tell from another or
+        # from the harmonics), lstsq's minimum-norm solution keeps the residual smooth.
+        q, r = np.linalg.qr(d)
+        diag = np.abs(np.diagonal(r))
+        out: NDArray[np.float64]
+        if diag.min() > RANK_FLOOR * diag.max():
+            out = self.left - q @ (q.T @ self.left)
+            return out
         coef, *_ = np.linalg.lstsq(d, self.left, rcond=None)
-        out: NDArray[np.float64] = self.left - d @ coef
+        out = self.left - d @ coef
         return out
 
 

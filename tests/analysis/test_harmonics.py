@@ -9,7 +9,12 @@ import pytest
 from numpy.typing import NDArray
 from scipy.signal import lfilter
 
-from station.analysis.harmonics import DEFAULT_ORDERS, JOINT_ORDERS, demodulate
+from station.analysis.harmonics import (
+    DEFAULT_ORDERS,
+    JOINT_ORDERS,
+    SteadyProjection,
+    demodulate,
+)
 
 SPP = 50.0  # samples per electrical period: 20 Hz at a 1 ms SYNC
 PERIODS = 12
@@ -190,6 +195,46 @@ def test_a_ring_the_window_cannot_tell_from_the_harmonics_is_left_out_not_split_
     assert worst() < 0.2
     monkeypatch.setattr("station.analysis.harmonics.SEPARABLE", 0.0)
     assert worst() > 1.0
+
+
+@pytest.mark.parametrize(
+    "case", ["two modes", "one mode twice", "a mode on order 2", "two modes, one period"]
+)
+def test_a_pole_search_is_given_the_least_squares_residual_of_its_decays(case: str) -> None:
+    """The search's residual is what lstsq leaves, also where the decays' columns are
+    not independent: a pole given twice, an undamped one on a harmonic (nothing is left
+    of it once the harmonics are projected out), or sidebands one period cannot tell
+    apart. A plain QR projection would add a direction of rounding noise there."""
+    periods = 1 if case == "two modes, one period" else 6
+    angle = _angle(round(periods * SPP))
+    signal = _drop(_signal(angle, CONTENT), 0.10, 3)
+    t = 40.0 + np.arange(angle.size)
+    first = complex(-0.004, 2 * math.pi * 37.0 / 1000.0)
+    second = complex(-0.01, 2 * math.pi * 61.0 / 1000.0)
+    on_order_2 = complex(0.0, 2 * math.pi * 2 / SPP)
+    poles = {
+        "two modes": (first, second),
+        "one mode twice": (first, first),
+        "a mode on order 2": (first, on_order_2),
+        "two modes, one period": (first, first + 1j * 2 * math.pi / SPP),
+    }[case]
+    for pole, amplitude in zip(poles, (0.6, 0.2), strict=True):
+        signal += amplitude * np.exp(pole.real * t) * np.cos(pole.imag * t + 0.3)
+    signal += np.random.default_rng(11).normal(0.0, 0.01, signal.size)
+    window = SteadyProjection.of(signal, angle, SPP, decay_from=40.0)
+
+    ok = ~np.isnan(signal)
+    orders = min(JOINT_ORDERS, math.floor(SPP / 2 - 1e-9))  # what demodulate fits
+    harmonics = [np.ones(angle.size)] + [
+        f(k * angle) for k in range(1, orders + 1) for f in (np.cos, np.sin)
+    ]
+    decays = [
+        np.exp(p.real * t) * f(p.imag * t) for p in poles for f in (np.cos, np.sin)
+    ]
+    design = np.column_stack(harmonics + decays)[ok]
+    coef, *_ = np.linalg.lstsq(design, signal[ok], rcond=None)
+    expected = signal[ok] - design @ coef
+    np.testing.assert_allclose(window.residual(poles), expected, rtol=0, atol=1e-9)
 
 
 def test_mismatched_shapes_and_too_few_samples_are_refused() -> None:
