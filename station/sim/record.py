@@ -221,7 +221,9 @@ def _record(
     )
 
 
-def _operating_optimum(unit: UnitParams) -> Trims:
+def operating_optimum(unit: UnitParams) -> Trims:
+    """The trims that null ``unit``'s ripple at the operating point: what a truth file
+    states, for a recording made by any path (bus or in process)."""
     return optimal_trims(
         unit,
         amplitude_mA=float(OPERATING_POINT.amplitude_mA),
@@ -247,7 +249,7 @@ def _truth(
             "amplitude_mA": OPERATING_POINT.amplitude_mA,
             "electrical_hz": OPERATING_POINT.electrical_hz,
         },
-        "optimal_trims": _operating_optimum(unit).as_dict(),
+        "optimal_trims": operating_optimum(unit).as_dict(),
         "unit": unit.to_dict(),
     }
 

@@ -31,12 +31,11 @@ from station.analysis.estimate import Method
 from station.analysis.pipeline import Analysis, AnalysisOptions, MethodChoice, analyze
 from station.analysis.reader import read_recording
 from station.core import LoadKind, Trims
-from station.physics.optimum import optimal_trims
 from station.physics.params import derive_unit
 from station.recording import LogFormat
 from station.schedules import SweepPlan, calibration_schedule
 from station.sim.inprocess import record_in_process
-from station.sim.record import OPERATING_POINT, SYNC_PERIOD_S
+from station.sim.record import SYNC_PERIOD_S, operating_optimum
 
 OFFSET_TOLERANCE_mA = 3.0
 GAIN_TOLERANCE = 30.0
@@ -111,14 +110,8 @@ def bench(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Bench]:
         out = recordings / unit.label
         record_in_process(out, params, schedule, seed=unit.seed, loss=LOSS,
                           sync_period_s=SYNC_PERIOD_S)
-        optimum = optimal_trims(
-            params,
-            amplitude_mA=float(OPERATING_POINT.amplitude_mA),
-            electrical_hz=OPERATING_POINT.electrical_hz,
-            sync_period_s=SYNC_PERIOD_S,
-        )
         effects = tuple(sorted(e.value for e in params.effects))
-        recorded[unit.label] = Recorded(unit, out, optimum, effects)
+        recorded[unit.label] = Recorded(unit, out, operating_optimum(params), effects)
     wall_s = time.perf_counter() - started
 
     @cache
