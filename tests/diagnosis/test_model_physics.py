@@ -39,9 +39,14 @@ from station.diagnosis.diagnose import (
     explains_the_rest,
     fit_nominal,
     fit_spec,
+    kept_physics,
+    local_groups,
     nominal_of,
     nominal_starts,
     settle_fallback,
+    tied_to_rotor,
+    unexplained_of,
+    without_soakers,
 )
 from station.diagnosis.fit import (
     HEAT_FIELD,
@@ -324,7 +329,10 @@ def test_an_eccentric_rotor_beside_strong_flux_harmonics_is_judged_against_wrong
     share of the flux's χ² that the flux group's own errors may leave. Those errors do not
     follow where the rotor stands in its revolution, so the eccentricity is judged against
     itself fitted at twice and three times that angle instead, and counts, at the plant's
-    size. On the twin with the flux alone it gains nothing at any angle."""
+    size. Tied to the rotor's angle, it stays named where it leaves more than it takes
+    (it takes only a part of what the modulated spring does beside the rotor's
+    resonance), unlike an id that gains as much at any angle. On the twin with the flux
+    alone it gains nothing at any angle."""
     flux, eccentric = Effect.FLUX_HARMONICS, Effect.ROTOR_ECCENTRICITY
     both = Case(TrialClass(frozenset({flux, eccentric})), 204)
     test = _beside(both, flux, eccentric)
@@ -334,8 +342,33 @@ def test_an_eccentric_rotor_beside_strong_flux_harmonics_is_judged_against_wrong
     plant = plan_trial(both).unit.motor.eccentricity
     assert plant is not None
     assert fitted == pytest.approx(plant.relative, rel=0.2)
+    assert tied_to_rotor(test.smaller, test.larger)
+
+    # Both models leaving, beyond the noise, twice what the eccentricity takes.
+    values = test.larger.held.residuals.size
+    left = 2.0 * test.held_gain + values + MODEL_ERROR_SHARE * test.larger.explained
+
+    def leaving_more(c: Candidate) -> Candidate:
+        return replace(c, held=replace(c.held, chi2=c.held.chi2 + left / c.held.chi2.size))
+
+    best, flux_only = leaving_more(test.larger), leaving_more(test.smaller)
+    # Without the flux, the eccentricity alone would leave nearly all of the flux's ripple.
+    ripple = replace(best.held, chi2=best.held.chi2 + 1e6 / best.held.chi2.size)
+    eccentric_only = replace(best, spec=replace(best.spec, effects=frozenset({eccentric})),
+                             held=ripple, wrong_angle=None)
+
+    def lacking(model: Candidate) -> dict[Effect, Candidate]:
+        return {e: c for e, c in ((flux, eccentric_only), (eccentric, flux_only))
+                if e in model.effects}
+
+    assert without_soakers(best, lacking).effects == {flux, eccentric}
+    at_any_angle = replace(best, wrong_angle=best.fit.chi2)
+    assert not tied_to_rotor(flux_only, at_any_angle)
+    assert without_soakers(at_any_angle, lacking).effects == {flux}
+
     twin = _beside(Case(TrialClass(frozenset({flux})), 204), flux, eccentric)
     assert not twin.significant
+    assert not tied_to_rotor(twin.smaller, twin.larger)
 
 
 def test_a_coupling_beside_a_strong_detent_is_found_from_a_start_its_first_rank_passed_over(
@@ -345,14 +378,57 @@ def test_a_coupling_beside_a_strong_detent_is_found_from_a_start_its_first_rank_
     polish are not the ones that lead to the coupling: every start gets the short polish
     (``GROUP_TOURNAMENT``). On this belt (a detent and a second compliance at 285 Hz) the
     two best-ranked starts settled at χ² 690 and the coupling did not count."""
-    detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
-    case = Case(TrialClass(frozenset({detent, coupling})), 1838253693)
-    test = _beside(case, detent, coupling)
+    test = _coupling_beside_detent()
     assert test.significant
-    plant = plan_trial(case).unit.mechanics.coupling
+    plant = plan_trial(_DETENT_AND_COUPLING).unit.mechanics.coupling
     assert plant is not None
     fitted = math.exp(float(test.larger.fit.value("log_coupling_hz")[0]))
     assert fitted == pytest.approx(plant.resonance_hz, rel=0.1)
+
+
+_DETENT_AND_COUPLING = Case(TrialClass(frozenset({Effect.DETENT_TORQUE,
+                                                  Effect.LOAD_RESONANCE})), 1838253693)
+
+
+@functools.cache
+def _coupling_beside_detent() -> Test:
+    return _beside(_DETENT_AND_COUPLING, Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE)
+
+
+def test_a_second_pass_keeps_a_group_in_its_range_where_a_basin_beside_it_is_no_longer_it(
+) -> None:
+    """A coupling damped at its bound of 2 is a filter, not a transmission mode, and is
+    rejected. When the second pass's fit lands there while the first pass's fit of the
+    same model did not, the model is polished again from the first pass's point, and
+    that fit is kept if it stays in range; a rejected first fit, or a fit in range, is
+    left as it is."""
+    found = _coupling_beside_detent().larger.fit
+    assert not found.rejected
+    zeta = found.model.layout.slices["coupling_damping_ratio"]
+    at_bound_params, at_bound_active = found.params.copy(), found.active.copy()
+    at_bound_params[zeta], at_bound_active[zeta] = 2.0, 1
+    filtered = replace(found, params=at_bound_params, active=at_bound_active)
+    assert filtered.rejected == ("coupling_damping_ratio",)
+    kept = kept_physics(found.model, filtered, found)
+    assert not kept.rejected
+    assert kept.chi2 == pytest.approx(found.chi2, rel=1e-3)
+    assert kept_physics(found.model, filtered, filtered) is filtered
+    assert kept_physics(found.model, found, filtered) is found
+
+
+def test_the_second_pass_tries_every_group_where_more_than_noise_is_left() -> None:
+    """Beside a model at the noise the second pass tries what the first pass carried;
+    beside one that leaves a significant residual, every group, since a group the first
+    pass passed over beside a strong one may be what is left."""
+    found = _coupling_beside_detent().larger
+    carried = (Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE)
+    assert not unexplained_of(found).significant
+    assert local_groups(found, carried) == carried
+    values = found.held.residuals.size
+    leaving = replace(found, held=replace(
+        found.held, chi2=found.held.chi2 + values / found.held.chi2.size))
+    assert unexplained_of(leaving).significant
+    assert set(local_groups(leaving, carried)) == set(Effect)
 
 
 def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_mode(
