@@ -311,6 +311,12 @@ def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() ->
     assert abs(measured - plant) < 4.0 * sigma, (measured, plant, sigma)
 
 
+def _leaving_more(candidate: Candidate, chi2: float) -> Candidate:
+    """``candidate`` leaving ``chi2`` more on held-out data, spread over its conditions."""
+    held = candidate.held
+    return replace(candidate, held=replace(held, chi2=held.chi2 + chi2 / held.chi2.size))
+
+
 def _beside(case: Case, first: Effect, second: Effect) -> Test:
     """The case's model with ``first``'s group, tested against the same with ``second``'s
     beside it (each judged as the search judges it)."""
@@ -348,14 +354,10 @@ def test_an_eccentric_rotor_beside_strong_flux_harmonics_is_judged_against_wrong
     values = test.larger.held.residuals.size
     left = 2.0 * test.held_gain + values + MODEL_ERROR_SHARE * test.larger.explained
 
-    def leaving_more(c: Candidate) -> Candidate:
-        return replace(c, held=replace(c.held, chi2=c.held.chi2 + left / c.held.chi2.size))
-
-    best, flux_only = leaving_more(test.larger), leaving_more(test.smaller)
+    best, flux_only = _leaving_more(test.larger, left), _leaving_more(test.smaller, left)
     # Without the flux, the eccentricity alone would leave nearly all of the flux's ripple.
-    ripple = replace(best.held, chi2=best.held.chi2 + 1e6 / best.held.chi2.size)
-    eccentric_only = replace(best, spec=replace(best.spec, effects=frozenset({eccentric})),
-                             held=ripple, wrong_angle=None)
+    eccentric_only = replace(_leaving_more(best, 1e6), wrong_angle=None,
+                             spec=replace(best.spec, effects=frozenset({eccentric})))
 
     def lacking(model: Candidate) -> dict[Effect, Candidate]:
         return {e: c for e, c in ((flux, eccentric_only), (eccentric, flux_only))
@@ -425,8 +427,7 @@ def test_the_second_pass_tries_every_group_where_more_than_noise_is_left() -> No
     assert not unexplained_of(found).significant
     assert local_groups(found, carried) == carried
     values = found.held.residuals.size
-    leaving = replace(found, held=replace(
-        found.held, chi2=found.held.chi2 + values / found.held.chi2.size))
+    leaving = _leaving_more(found, values)
     assert unexplained_of(leaving).significant
     assert set(local_groups(leaving, carried)) == set(Effect)
 
@@ -667,11 +668,8 @@ def test_a_group_beside_others_must_gain_more_than_their_errors_leave_or_explain
     # The same gains with twice as much left beyond the larger model on held-out data.
     left = 2.0 * test.held_gain
 
-    def leaving_more(c: Candidate) -> Candidate:
-        return replace(c, held=replace(c.held, chi2=c.held.chi2 + left / c.held.chi2.size))
-
-    assert not explains_the_rest(leaving_more(smaller), leaving_more(test.larger))
-    short = compare(leaving_more(smaller), leaving_more(test.larger))
+    assert not explains_the_rest(_leaving_more(smaller, left), _leaving_more(test.larger, left))
+    short = compare(_leaving_more(smaller, left), _leaving_more(test.larger, left))
     assert short.held_gain == pytest.approx(test.held_gain)
     assert short.model_error == pytest.approx(2.0 * test.chi2_gain)
     assert short.bic_threshold == pytest.approx(test.bic_threshold + short.model_error)
