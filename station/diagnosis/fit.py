@@ -72,6 +72,10 @@ HEAT_NFEV = 3
 its better half goes on to the rest of the short polish (``best_of``)."""
 HEAT_FIELD = 3
 """Starts a tournament polishes to ``TOURNAMENT_NFEV`` without a heat before."""
+AT_BOUND = 1e-6
+"""How near a bound, as a share of the range, a parameter the solver left free counts as
+on it when judged (``judge_parameters``): rounding, not the solver's tolerance, which
+``REJECT_MARGIN`` allows for where a group may not rest."""
 PUSH_CHI2 = 9.0
 """A bound pressed this hard (χ² it would give back, 3σ) is a finding, not a rest."""
 REJECT_MARGIN = 1e-3
@@ -625,7 +629,7 @@ def judge_parameters(result: Fit, *, unresolved_sigma: dict[str, float] | None =
             side = int(result.active[i])
             if side == 0:
                 span = high[i] - low[i]
-                near = 1e-6 * (span if math.isfinite(span) else 1.0)
+                near = AT_BOUND * (span if math.isfinite(span) else 1.0)
                 side = -1 if value - low[i] <= near else 1 if high[i] - value <= near else 0
             if side != 0:
                 # The χ² a free Gauss-Newton step on this parameter alone would give back.

@@ -1092,8 +1092,7 @@ class Model:
             return (np.zeros(self.obs.phasors.shape, dtype=np.complex128),
                     np.zeros((self.obs.count, _BAND, GRID)),
                     np.zeros(self.obs.count))
-        shapes = self._friction_shapes.get(
-            p, lambda: self.friction_shapes(p, self.load_velocity(p)))
+        shapes = self.friction_shapes_here(p)
         c = self._p(p, "friction_coulomb")
         force = c[0] * shapes[0] + c[1] * shapes[1]
         slope = c[0] * shapes[2] + c[1] * shapes[3]  # (S, 3, N)
@@ -1115,6 +1114,12 @@ class Model:
             ripple = ripple + ((above / self.jw_beyond) @ self.synth_beyond).real
         out: NDArray[np.float64] = self.load_speed + ripple
         return out
+
+    def friction_shapes_here(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+        """``friction_shapes`` on the load's velocity at ``p`` (kept: the torque and the
+        linear design both ask for it at the same point)."""
+        return self._friction_shapes.get(
+            p, lambda: self.friction_shapes(p, self.load_velocity(p)))
 
     def friction_shapes(self, p: NDArray[np.float64], velocity: NDArray[np.float64]
                         ) -> tuple[NDArray[np.float64], ...]:
@@ -1523,8 +1528,7 @@ class Model:
         dc = stacked.mean(axis=2)
         lay = self.layout
         if lay.has("friction_coulomb"):
-            shapes = self._friction_shapes.get(
-                p, lambda: self.friction_shapes(p, self.load_velocity(p)))
+            shapes = self.friction_shapes_here(p)
             order = [b.name for b in lay.blocks if b.kind is BlockKind.LINEAR]
             row = sum(lay.block(n).size for n in order[:order.index("friction_coulomb")])
             gear = self.gear_ratio
