@@ -32,6 +32,7 @@ from station.diagnosis.diagnose import (
     Candidate,
     Nominal,
     Search,
+    _refine_angles,
     _transplant,
     candidate_of,
     compare,
@@ -437,33 +438,61 @@ def test_the_second_pass_tries_every_group_where_more_than_noise_is_left() -> No
 def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_mode(
 ) -> None:
     """On this belt (detent torque, no coupling; belt mode 143 Hz at ζ 0.12 with the motor
-    held) the detent model's belt sat where it did nothing, damped at 1.5, and a coupling
-    took the belt's own mode: named load_resonance beside detent_torque, the trial scored
-    0 (benchmark, session 28). Polished from the coupling's point with the coupling's
-    group taken out, the belt stayed where it was; moved into the belt
-    (``coupling_as_belt``), the model without the coupling fits as well as the one with
-    it, and its belt is the plant's."""
+    held) the detent model's belt sat where it did nothing and a coupling took the belt's
+    own mode: named load_resonance beside detent_torque, the trial scored 0 (benchmark,
+    session 28). Polished from the coupling's point with the coupling's group taken out,
+    the belt stays where it was; moved into the belt (``coupling_as_belt``), the model
+    without the coupling fits as well as the one with it, and its belt is the plant's.
+
+    That fit is made here from its point (the belt resting with a load of 5 % of the
+    rotor and damped at 1.5, the coupling at the plant's belt with the inertia beyond it)
+    on the recording's own weights, not searched for: on this trial the search's nominal
+    bends its belt to about 12 Hz, and the weights it sets near that chain's modes, and
+    every fit after them, differ with the rounding of the machine's BLAS kernels (the
+    recording's phasors differ by 4e-13 between SkylakeX and Zen kernels; the detent
+    model then ended at χ² 691 on one and 350,734 on the other)."""
     detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
     case = Case(TrialClass(frozenset({detent})), 1981511873)
-    test = _beside(case, detent, coupling)
-    assert test.significant
-    larger, smaller = test.larger.fit, test.smaller.fit
-    model, obs = smaller.model, smaller.model.obs
-    nominal_chi2 = smaller.chi2 + test.smaller.explained
+    plan = plan_trial(case)
+    unit = plan.unit
+    obs = observe(simulate_timeline(unit, plan.schedule, seed=case.seed, loss=plan.loss,
+                                    substeps=PLANT_SUBSTEPS))
+    motor, belt, sensor = unit.motor, unit.mechanics.belt, unit.sensor
+    assert belt is not None
+    plant_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
+    at_rotor = motor.rotor_inertia_kgm2 + belt.motor_pulley_inertia_kgm2
+    beyond = belt.load_inertia_kgm2 * belt.reduction**2
+    spring = motor.rotor_teeth * motor.kt_Nm_per_A * unit.rated_current_mA * 1e-3
+    w0 = 2 * math.pi * sensor.bandwidth_hz
+    w1 = math.sqrt(spring / (at_rotor + beyond))  # the rotor with all it carries
+    model = Model(ModelSpec(ChainKind.BELT, frozenset({detent})), obs)
+    larger_model = Model(ModelSpec(ChainKind.BELT, frozenset({detent, coupling})), obs)
+    point = larger_model.with_values(larger_model.layout.start(), {
+        "sensor_a1_ms": [2 * sensor.damping_ratio / w0 * 1e3],
+        "sensor_a2_ms2": [1e6 / w0**2],
+        "log_rotor_hz": [math.log(w1 / (2 * math.pi))],
+        "log_load_ratio": [math.log(0.05)],
+        "belt_damping_ratio": [1.5],
+        "log_coupling_hz": [math.log(plant_hz)],
+        "coupling_damping_ratio": [0.12],
+        "coupling_fraction": [beyond / (at_rotor + beyond)],
+    })
+    with threadpool_limits(limits=1, user_api="blas"):
+        larger = fit(larger_model, [_refine_angles(larger_model, point)], keep=1)
+    # The χ² its groups took is not what is judged here: any nominal χ² does.
+    with_coupling = candidate_of(obs, larger.chi2, larger)
 
     def against_coupling(start: NDArray[np.float64]) -> Test:
         with threadpool_limits(limits=1, user_api="blas"):
-            kept = candidate_of(obs, nominal_chi2, polish(model, start))
-        return compare(kept, test.larger)
+            kept = candidate_of(obs, larger.chi2, polish(model, start))
+        return compare(kept, with_coupling)
 
+    assert larger.chi2 < 2.0 * larger.dof  # the coupling carries the belt's mode
     assert against_coupling(_transplant(model, larger)).significant
     start = coupling_as_belt(model, larger)
     assert start is not None
     moved = against_coupling(start)
     assert not moved.significant
-    belt = plan_trial(case).unit.mechanics.belt
-    assert belt is not None
-    plant_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
     fitted_hz = math.exp(float(moved.smaller.fit.value("log_belt_hz")[0]))
     assert fitted_hz == pytest.approx(plant_hz, rel=0.1)
     # A disk declares no belt to move it into.
