@@ -91,6 +91,7 @@ from station.diagnosis.model import (
     sawtooth_mean,
 )
 from station.diagnosis.observations import Holds, NotDiagnosable, Observations, observe
+from station.physics.params import SensorParams
 from station.schedules import RandomCharacterizationRanges, random_characterization
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
@@ -110,15 +111,19 @@ def _observed(effect: Effect, seed: int) -> tuple[Observations, Case]:
     return observe(timeline), case
 
 
+def _sensor_truth(sensor: SensorParams) -> dict[str, list[float]]:
+    """The model's sensor low-pass 1/(1 + a1·s + a2·s²) at the plant sensor's own."""
+    w0 = 2 * math.pi * sensor.bandwidth_hz
+    return {"sensor_a1_ms": [2 * sensor.damping_ratio / w0 * 1e3],
+            "sensor_a2_ms2": [1e6 / w0**2]}
+
+
 def _truth_start(model: Model, case: Case) -> np.ndarray:
     """The model's parameters at the plant's own values where the model has them."""
     unit = plan_trial(case).unit
-    motor, sensor = unit.motor, unit.sensor
-    p = model.layout.start()
+    motor = unit.motor
+    p = model.with_values(model.layout.start(), _sensor_truth(unit.sensor))
     sl = model.layout.slices
-    w0 = 2 * math.pi * sensor.bandwidth_hz
-    p[sl["sensor_a1_ms"]] = 2 * sensor.damping_ratio / w0 * 1e3
-    p[sl["sensor_a2_ms2"]] = 1e6 / w0**2
     disk = unit.mechanics.disk
     assert disk is not None, "these development seeds draw disk units"
     inertia = motor.rotor_inertia_kgm2 + disk.inertia_kgm2
@@ -452,24 +457,19 @@ def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_
     recording's phasors differ by 4e-13 between SkylakeX and Zen kernels; the detent
     model then ended at χ² 691 on one and 350,734 on the other)."""
     detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
-    case = Case(TrialClass(frozenset({detent})), 1981511873)
-    plan = plan_trial(case)
-    unit = plan.unit
-    obs = observe(simulate_timeline(unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                    substeps=PLANT_SUBSTEPS))
-    motor, belt, sensor = unit.motor, unit.mechanics.belt, unit.sensor
+    obs, case = _observed(detent, 1981511873)
+    unit = plan_trial(case).unit
+    motor, belt = unit.motor, unit.mechanics.belt
     assert belt is not None
     plant_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
     at_rotor = motor.rotor_inertia_kgm2 + belt.motor_pulley_inertia_kgm2
     beyond = belt.load_inertia_kgm2 * belt.reduction**2
     spring = motor.rotor_teeth * motor.kt_Nm_per_A * unit.rated_current_mA * 1e-3
-    w0 = 2 * math.pi * sensor.bandwidth_hz
     w1 = math.sqrt(spring / (at_rotor + beyond))  # the rotor with all it carries
     model = Model(ModelSpec(ChainKind.BELT, frozenset({detent})), obs)
     larger_model = Model(ModelSpec(ChainKind.BELT, frozenset({detent, coupling})), obs)
     point = larger_model.with_values(larger_model.layout.start(), {
-        "sensor_a1_ms": [2 * sensor.damping_ratio / w0 * 1e3],
-        "sensor_a2_ms2": [1e6 / w0**2],
+        **_sensor_truth(unit.sensor),
         "log_rotor_hz": [math.log(w1 / (2 * math.pi))],
         "log_load_ratio": [math.log(0.05)],
         "belt_damping_ratio": [1.5],
