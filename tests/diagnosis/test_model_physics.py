@@ -29,6 +29,7 @@ from station.diagnosis.diagnose import (
     GRID_SHARED,
     MODEL_ERROR_SHARE,
     REGRID_KEEP,
+    SETTLE_TRUST_CHI2,
     Candidate,
     Nominal,
     Search,
@@ -45,6 +46,7 @@ from station.diagnosis.diagnose import (
     nominal_of,
     nominal_starts,
     settle_fallback,
+    settling_warnings,
     tied_to_rotor,
     unexplained_of,
     without_soakers,
@@ -103,12 +105,16 @@ if TYPE_CHECKING:  # not imported at run time: pytest would take the class for t
     from station.diagnosis.diagnose import Test
 
 
+def _timeline(case: Case) -> Timeline:
+    """The case's recording, made in process."""
+    plan = plan_trial(case)
+    return simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
+                             substeps=PLANT_SUBSTEPS)
+
+
 def _observed(effect: Effect, seed: int) -> tuple[Observations, Case]:
     case = Case(TrialClass(frozenset({effect})), seed)
-    plan = plan_trial(case)
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
-    return observe(timeline), case
+    return observe(_timeline(case)), case
 
 
 def _sensor_truth(sensor: SensorParams) -> dict[str, list[float]]:
@@ -138,9 +144,7 @@ def _truth_start(model: Model, case: Case) -> np.ndarray:
 
 def _case_nominal(case: Case) -> Nominal:
     """The case's recording (made in process) and its nominal fit."""
-    plan = plan_trial(case)
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
+    timeline = _timeline(case)
     with threadpool_limits(limits=1, user_api="blas"):
         return nominal_of(timeline)[1]
 
@@ -435,7 +439,8 @@ def test_the_second_pass_tries_every_group_where_more_than_noise_is_left() -> No
     assert not unexplained_of(found).significant
     assert local_groups(found, carried) == carried
     values = found.held.residuals.size
-    leaving = _leaving_more(found, values)
+    # Two per value: beyond the limit (1.25 per value and four σ) whatever the fit left.
+    leaving = _leaving_more(found, 2.0 * values)
     assert unexplained_of(leaving).significant
     assert set(local_groups(leaving, carried)) == set(Effect)
 
@@ -526,9 +531,11 @@ def test_a_group_stopped_just_short_of_a_bound_it_may_not_rest_on_rests_there() 
 
 
 @pytest.mark.parametrize(("seed", "bound"), [
-    (94205421, "coupling_damping_ratio"),  # twice critical: a damper, not a mode
     # Once a hundredth of the inertia beyond it (a filter); with friction evaluated on
     # the whole measured velocity, twice critical, 1.9998 of 2 (``REJECT_MARGIN``).
+    # (Seed 94205421's coupling rested twice critical too, on the short holds its bent
+    # nominal chain settled; on the others it rests on no bound, and the diagnosis names
+    # friction alone, held-out χ² 152.7.)
     (1850757460, "coupling_damping_ratio"),
 ])
 def test_a_coupling_resting_where_it_is_no_mode_is_not_named_beside_strong_friction(
@@ -583,8 +590,10 @@ def test_friction_is_evaluated_on_the_whole_measured_velocity_orders_above_8_inc
     stops in a period those orders decide when friction turns. They were in the rotor's
     swing but not in the velocity friction was evaluated on. Development trial
     friction+sensor_clock_drift@101 (a disk): with them, friction and the clock fitted
-    together leave a tenth of what friction alone leaves on held-out data; without, a
-    third (24,372 of 65,516), and the diagnosis named friction alone."""
+    together left a tenth of what friction alone leaves on held-out data; without, a
+    third (24,372 of 65,516), and the diagnosis named friction alone. Its nominal fit
+    (χ²/dof 110) is now too far from the recording to settle the short holds
+    (``SETTLE_TRUST_CHI2``); on the others the pair leaves a fifth (11,954 of 57,621)."""
     case = Case(TrialClass(frozenset({Effect.FRICTION, Effect.SENSOR_CLOCK_DRIFT})), 101)
     nominal = _case_nominal(case)
     base = nominal.balanced
@@ -606,7 +615,7 @@ def test_friction_is_evaluated_on_the_whole_measured_velocity_orders_above_8_inc
     np.testing.assert_allclose(model.load_velocity(p), obs.load_speed[:, None] + ripple,
                                atol=1e-9 * float(np.max(np.abs(obs.load_speed))))
     alone, both = (held_out(fitted[e]).total for e in fitted)
-    assert both < alone / 5
+    assert both < alone / 4
 
 
 def test_coulomb_friction_resting_on_its_smoothing_ceiling_still_counts() -> None:
@@ -798,10 +807,8 @@ def test_each_trim_step_moves_the_rotor_along_its_spring_so_a_belt_beside_its_mo
     times its floor there, and the clean unit's nominal fit ended at χ²/dof 5.8 (a
     mismatch reported on a clean unit); with each segment's slip it is at the noise."""
     case = Case(TrialClass(), 61)
-    plan = plan_trial(case)
-    assert plan.unit.mechanics.belt is not None
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
+    assert plan_trial(case).unit.mechanics.belt is not None
+    timeline = _timeline(case)
     with threadpool_limits(limits=1, user_api="blas"):
         _, nominal = nominal_of(timeline)
     balanced = nominal.balanced
@@ -812,9 +819,7 @@ def test_each_trim_step_moves_the_rotor_along_its_spring_so_a_belt_beside_its_mo
 
 def _clean(seed: int) -> tuple[Timeline, Case]:
     case = Case(TrialClass(), seed)
-    plan = plan_trial(case)
-    return simulate_timeline(plan.unit, plan.schedule, seed=seed, loss=plan.loss,
-                             substeps=PLANT_SUBSTEPS), case
+    return _timeline(case), case
 
 
 def test_a_rotor_swinging_out_of_its_periodic_motion_is_skipped_and_said_why(
@@ -1067,11 +1072,10 @@ def test_the_settling_ends_when_a_pass_keeps_the_holds_it_kept_before(
     earlier one kept, each settled the same way, ends it before it observes anything:
     only their ringing poles' prior would have moved, a little with the fit
     (development trial detent_torque+flux_harmonics@101, a belt: 111 holds twice, each
-    pole a few percent off the pass before)."""
-    case = Case(TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS})), 101)
-    plan = plan_trial(case)
-    timeline = simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
-                                 substeps=PLANT_SUBSTEPS)
+    pole a few percent off the pass before). Here the same unit with a reluctance torque,
+    whose nominal fit the chain is trusted to settle with (that trial's is not now:
+    ``test_a_chain_bent_to_hide_a_strong_effect_settles_no_hold``)."""
+    timeline = _timeline(Case(TrialClass(frozenset({Effect.RELUCTANCE_TORQUE})), 101))
     holds: list[Holds] = []
     observed: list[Observations] = []
     fitted: list[Observations] = []
@@ -1101,6 +1105,35 @@ def test_the_settling_ends_when_a_pass_keeps_the_holds_it_kept_before(
     # The first observation and one per pass but the last, each fitted once.
     assert len(observed) == len(fitted) == len(holds) - 1
     assert obs.segments == fitted[-1].segments
+
+
+def test_a_chain_bent_to_hide_a_strong_effect_settles_no_hold(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A nominal fit far from its recording has bent its chain to hide what it lacks, and
+    its modes are where the bend put them: none of the short holds is settled or rung
+    out with them, and the diagnosis says why they are left out. On this development
+    belt (a strong detent torque) the first fit leaves χ²/dof of about 290; the same unit
+    with a weak reluctance torque has its short holds settled
+    (``test_the_settling_ends_when_a_pass_keeps_the_holds_it_kept_before``)."""
+    timeline = _timeline(Case(TrialClass(frozenset({Effect.DETENT_TORQUE})), 101))
+    observed: list[Observations] = []
+    real_observe = observations.observe
+
+    def observing(timeline: Timeline, **kwargs: Any) -> Observations:
+        observed.append(real_observe(timeline, **kwargs))
+        return observed[-1]
+
+    monkeypatch.setattr(diagnose, "observe", observing)
+    obs, fits = nominal_of(timeline)
+    # Read once, before any chain is known; no pass observed it again with the bent one.
+    assert len(observed) == 1 and obs is observed[0]
+    assert fits.untrusted is not None and fits.untrusted > SETTLE_TRUST_CHI2
+    assert fits.untrusted == pytest.approx(fits.free.chi2 / fits.free.dof)
+    assert obs.model_settled == obs.ringing == 0
+    assert any("too short to judge settling" in s.reason for s in obs.skipped)
+    said = [w for w in settling_warnings(obs, fits.untrusted) if "not trusted" in w]
+    assert len(said) == 1 and f"χ²/dof {fits.untrusted:.0f}" in said[0]
+    assert not any("not trusted" in w for w in settling_warnings(obs, None))
 
 
 class _Counting(Model):
@@ -1486,7 +1519,9 @@ def test_a_loop_lag_beside_a_strong_current_distortion_is_named_when_it_leaves_t
     leaves held out is near the noise, and the lag takes it below: there are no errors of
     the distortion left for a group to soak up. Counted one per value, the noise seemed to
     leave more than the distortion did, and the lag was never named (development pair
-    current_distortion+current_loop_lag@204)."""
+    current_distortion+current_loop_lag@204). Its nominal fit (χ²/dof 770) now settles
+    none of the short holds (``SETTLE_TRUST_CHI2``); on the others the distortion leaves
+    887 for 851 values, of which the noise leaves 747, and the lag 773."""
     both = frozenset({Effect.CURRENT_DISTORTION, Effect.CURRENT_LOOP_LAG})
     case = Case(TrialClass(both), 204)
     nominal = _case_nominal(case)
@@ -1497,10 +1532,9 @@ def test_a_loop_lag_beside_a_strong_current_distortion_is_named_when_it_leaves_t
         distortion = search.get(frozenset({Effect.CURRENT_DISTORTION}))
         lagging = search.get(both)
         test = compare(distortion, lagging)
-    values = lagging.held.residuals.size
+    # Beyond the noise the distortion leaves 140 held out, the lag 26 of it.
     noise = lagging.fit.model.noise_chi2()
-    assert distortion.held.total < values, "one per value, nothing seemed left"
-    assert lagging.held.total < noise < distortion.held.total
+    assert noise < lagging.held.total < distortion.held.total
     assert MODEL_ERROR_SHARE * distortion.explained > 5 * test.chi2_gain
     assert explains_the_rest(distortion, lagging)
     assert test.model_error == 0.0 and test.significant
