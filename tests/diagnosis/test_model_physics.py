@@ -457,10 +457,10 @@ def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_
     That fit is made here from its point (the belt resting with a load of 5 % of the
     rotor and damped at 1.5, the coupling at the plant's belt with the inertia beyond it)
     on the recording's own weights, not searched for: on this trial the search's nominal
-    bends its belt to about 12 Hz, and the weights it sets near that chain's modes, and
-    every fit after them, differ with the rounding of the machine's BLAS kernels (the
-    recording's phasors differ by 4e-13 between SkylakeX and Zen kernels; the detent
-    model then ended at χ² 691 on one and 350,734 on the other)."""
+    bends its belt to about 12 Hz, and the weights it sets near that chain's modes are
+    not the plant's. (That chain also used to ring out short holds, differently with the
+    rounding of each machine's BLAS kernels, until a bent chain stopped settling any:
+    ``SETTLE_TRUST_CHI2``.)"""
     detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
     obs, case = _observed(detent, 1981511873)
     unit = plan_trial(case).unit
