@@ -50,7 +50,7 @@ import functools
 import itertools
 import math
 import multiprocessing
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
@@ -701,10 +701,12 @@ def _balanced(free: Fit, obs: Observations, spec: ModelSpec | None = None, *,
 
 
 def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None,
-             grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None) -> Fit:
+             grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None,
+             *, others: Sequence[Fit] = ()) -> Fit:
     """A model with more term groups than ``base``, started from it, from the unbent
     nominal fit ``free`` and from each new group's own starting points; and, when the base
-    fits badly (it has bent its chain to hide what it lacks), from the chain grid again
+    fits badly (it has bent its chain to hide what it lacks), from the chains of the
+    ``others`` one group smaller (each bent its own way), and from the chain grid again
     (``grid``: its best points after their first linear pass, made already, each with
     the χ² that pass predicted: ``Search.shared_grid``)."""
     model = Model(spec, obs)
@@ -734,6 +736,10 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
         ranked = (screen(model, nominal_starts(model), exact=GRID_EXACT) if grid is None
                   else rank_passed(model, list(grid), GRID_EXACT))
         estimated += [x for _, x in ranked[:REGRID_KEEP]]
+    if bent:
+        # A bent base's chain is where its own groups were best hidden, and another subset
+        # may have bent it elsewhere, nearer the chain the larger model needs.
+        estimated += [_transplant(model, other) for other in others]
     chosen = chosen_starts(model, starts, 2, estimated)
     if bent and free is not None:
         # The unbent chain and load angles, with the new groups' linear parts solved: these
@@ -1119,6 +1125,7 @@ class _Job:
     earlier: Fit | None  # the same model fitted with the first pass's weights
     # The chain grid's best points after their first pass, when made for many jobs at once.
     grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None
+    others: tuple[Fit, ...] = ()  # the other fitted models one group smaller
 
 
 def _fit_job(obs: Observations, nominal_chi2: float, job: _Job) -> Candidate:
@@ -1134,7 +1141,7 @@ def _fit_job(obs: Observations, nominal_chi2: float, job: _Job) -> Candidate:
         result = fit(model, [job.earlier.params.copy(), start], keep=2)
         result = never_worse(model, kept_physics(model, result, job.earlier), job.base, start)
     else:
-        result = fit_spec(obs, job.spec, job.base, job.free, job.grid)
+        result = fit_spec(obs, job.spec, job.base, job.free, job.grid, others=job.others)
         if (Effect.SENSOR_CLOCK_DRIFT in job.spec.effects
                 and Effect.SENSOR_CLOCK_DRIFT not in job.base.model.spec.effects):
             # A sensor may hold its latest sample per SYNC (a sawtooth of delays) or
@@ -1345,13 +1352,15 @@ class Search:
         smaller = [(effects - {e}, bend) for e in effects] + ([(effects, False)] if bend else [])
         bases = [self.cache[k] for k in smaller if k in self.cache]
         base = min(bases, key=lambda c: c.fit.chi2) if bases else self.nominal
+        others = tuple(c.fit for c in bases if c is not base)
         earlier = self.previous.get(key)
         spec = (earlier.fit.model.spec if earlier is not None
                 else replace(self.nominal.spec, effects=effects, sensor_bend=bend))
         if earlier is None and Effect.SENSOR_CLOCK_DRIFT in base.effects:
             # The sensor's clock keeps the form its smaller model chose (``_fit_job``).
             spec = replace(spec, clock_wraps=base.spec.clock_wraps)
-        return _Job(spec, base.fit, self.free, None if earlier is None else earlier.fit)
+        return _Job(spec, base.fit, self.free, None if earlier is None else earlier.fit,
+                    others=others)
 
     def refined(self, tests: Iterable[Test]) -> list[Test]:
         """``tests`` made again against the smaller models as the search now has them,
