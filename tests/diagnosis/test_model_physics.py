@@ -99,6 +99,8 @@ from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
 
 if TYPE_CHECKING:  # not imported at run time: pytest would take the class for tests
+    from collections.abc import Sequence
+
     from numpy.typing import NDArray
 
     from station.analysis.timeline import Timeline
@@ -1073,9 +1075,10 @@ def test_a_model_grown_from_a_drifting_clock_fits_the_clock_only_in_the_form_it_
     forms: list[bool] = []
 
     def counted(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = None,
-                grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None) -> Fit:
+                grid: tuple[tuple[NDArray[np.float64], float], ...] | None = None,
+                *, others: Sequence[Fit] = ()) -> Fit:
         forms.append(spec.clock_wraps)
-        return fit_spec(obs, spec, base, free, grid)
+        return fit_spec(obs, spec, base, free, grid, others=others)
 
     with threadpool_limits(limits=1, user_api="blas"):
         nominal = fit_nominal(obs)
