@@ -97,6 +97,7 @@ from station.physics.params import SensorParams
 from station.schedules import RandomCharacterizationRanges, random_characterization
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial
 from station.sim.inprocess import simulate_timeline
+from station.sim.population import belt_mode_motor_held_hz
 
 if TYPE_CHECKING:  # not imported at run time: pytest would take the class for tests
     from collections.abc import Sequence
@@ -425,7 +426,7 @@ def test_a_larger_model_also_starts_from_the_chain_its_other_smaller_model_bent(
     assert pair.chi2 < 2 * pair.dof
     belt = plan_trial(case).unit.mechanics.belt
     assert belt is not None
-    plant_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
+    plant_hz = belt_mode_motor_held_hz(belt)
     assert math.exp(float(pair.value("log_belt_hz")[0])) == pytest.approx(plant_hz, rel=0.1)
 
 
@@ -495,7 +496,7 @@ def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_
     unit = plan_trial(case).unit
     motor, belt = unit.motor, unit.mechanics.belt
     assert belt is not None
-    plant_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
+    plant_hz = belt_mode_motor_held_hz(belt)
     at_rotor = motor.rotor_inertia_kgm2 + belt.motor_pulley_inertia_kgm2
     beyond = belt.load_inertia_kgm2 * belt.reduction**2
     spring = motor.rotor_teeth * motor.kt_Nm_per_A * unit.rated_current_mA * 1e-3
@@ -892,7 +893,7 @@ def test_a_belt_is_fitted_on_its_own_chain_whatever_its_load_and_phase_imbalance
     assert result.chi2 / result.dof < 1.5
     motor_side = unit.motor.rotor_inertia_kgm2 + belt.motor_pulley_inertia_kgm2
     ratio = belt.load_inertia_kgm2 * belt.reduction**2 / motor_side
-    belt_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
+    belt_hz = belt_mode_motor_held_hz(belt)
     assert math.exp(result.scalar("log_load_ratio")) == pytest.approx(ratio, rel=0.3)
     assert math.exp(result.scalar("log_belt_hz")) == pytest.approx(belt_hz, rel=0.1)
     offsets = result.value("amp_offset_mA")
@@ -980,7 +981,7 @@ def test_a_belt_whose_own_mode_lies_far_above_the_band_is_fitted_from_the_mode_i
     result = nominal.balanced
     assert result.chi2 / result.dof < 1.1
     assert held_out(result).total / result.observations < 1.1
-    belt_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
+    belt_hz = belt_mode_motor_held_hz(belt)
     assert math.exp(result.scalar("log_belt_hz")) == pytest.approx(belt_hz, rel=0.1)
     assert math.exp(result.scalar("log_load_ratio")) > 1.0
 
