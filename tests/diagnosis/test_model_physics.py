@@ -1543,6 +1543,22 @@ def test_the_noise_leaves_its_own_share_of_a_strong_ripples_values_not_one_each(
     assert abs(held.total - noise) < 0.5 * abs(held.total - values), (held.total, noise, values)
 
 
+DISTORTION_AND_LAG = frozenset({Effect.CURRENT_DISTORTION, Effect.CURRENT_LOOP_LAG})
+
+
+def _lag_beside_distortion(case: Case) -> tuple[Candidate, Candidate, Test]:
+    """The case's distortion model and the pair with the loop lag, as the search fits
+    them, and the test between the two."""
+    nominal = _case_nominal(case)
+    base = nominal.balanced
+    with threadpool_limits(limits=1, user_api="blas"):
+        search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
+                        nominal.free, None)
+        distortion = search.get(frozenset({Effect.CURRENT_DISTORTION}))
+        lagging = search.get(DISTORTION_AND_LAG)
+        return distortion, lagging, compare(distortion, lagging)
+
+
 def test_a_loop_lag_beside_a_strong_current_distortion_is_named_when_it_leaves_the_noise(
 ) -> None:
     """The distortion takes so much that the share its own errors may leave
@@ -1553,16 +1569,8 @@ def test_a_loop_lag_beside_a_strong_current_distortion_is_named_when_it_leaves_t
     current_distortion+current_loop_lag@204). Its nominal fit (χ²/dof 770) now settles
     none of the short holds (``SETTLE_TRUST_CHI2``); on the others the distortion leaves
     887 for 851 values, of which the noise leaves 747, and the lag 773."""
-    both = frozenset({Effect.CURRENT_DISTORTION, Effect.CURRENT_LOOP_LAG})
-    case = Case(TrialClass(both), 204)
-    nominal = _case_nominal(case)
-    base = nominal.balanced
-    with threadpool_limits(limits=1, user_api="blas"):
-        search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
-                        nominal.free, None)
-        distortion = search.get(frozenset({Effect.CURRENT_DISTORTION}))
-        lagging = search.get(both)
-        test = compare(distortion, lagging)
+    case = Case(TrialClass(DISTORTION_AND_LAG), 204)
+    distortion, lagging, test = _lag_beside_distortion(case)
     # Beyond the noise the distortion leaves 140 held out, the lag 26 of it.
     noise = lagging.fit.model.noise_chi2()
     assert noise < lagging.held.total < distortion.held.total
@@ -1585,15 +1593,8 @@ def test_a_loop_lag_is_named_where_the_noise_estimate_exceeds_what_both_models_l
     by that much is too high (the strong ripple's floor in σ), so what the lag leaves
     bounds it: the lag took all that was left beyond it and is judged on the noise alone,
     not held to the distortion's model error (3,198, ``MODEL_ERROR_SHARE``)."""
-    both = frozenset({Effect.CURRENT_DISTORTION, Effect.CURRENT_LOOP_LAG})
-    nominal = _case_nominal(Case(TrialClass(both), 1594235326))
-    base = nominal.balanced
-    with threadpool_limits(limits=1, user_api="blas"):
-        search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
-                        nominal.free, None)
-        distortion = search.get(frozenset({Effect.CURRENT_DISTORTION}))
-        lagging = search.get(both)
-        test = compare(distortion, lagging)
+    case = Case(TrialClass(DISTORTION_AND_LAG), 1594235326)
+    distortion, lagging, test = _lag_beside_distortion(case)
     assert lagging.held.total < distortion.held.total < lagging.fit.model.noise_chi2()
     assert MODEL_ERROR_SHARE * distortion.explained > 10 * test.held_gain
     assert explains_the_rest(distortion, lagging)
