@@ -589,7 +589,7 @@ class ParameterJudgement:
     sigma: float
     state: ParameterState
     bound: float | None = None
-    chi2_gain: float = 0.0  # what freeing it past its bound would give back
+    chi2_gain: float = 0.0  # what a step past its bound, at most its range, gives back
 
 
 def covariance(result: Fit) -> NDArray[np.float64]:
