@@ -1357,8 +1357,11 @@ class Search:
         smaller = [(effects - {e}, bend) for e in effects] + ([(effects, False)] if bend else [])
         bases = [self.cache[k] for k in smaller if k in self.cache]
         base = min(bases, key=lambda c: c.fit.chi2) if bases else self.nominal
-        others = tuple(c.fit for c in bases if c is not base)
         earlier = self.previous.get(key)
+        # Only a first fit on a bent base starts from the others' chains (``fit_spec``):
+        # elsewhere they would be shipped to a worker for nothing.
+        others = (tuple(c.fit for c in bases if c is not base)
+                  if earlier is None and _bent(base.fit) else ())
         spec = (earlier.fit.model.spec if earlier is not None
                 else replace(self.nominal.spec, effects=effects, sensor_bend=bend))
         if earlier is None and Effect.SENSOR_CLOCK_DRIFT in base.effects:
