@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 from enum import StrEnum
+from typing import Any
+
+Mapper = Callable[..., Iterable[Any]]
+"""``map``, or an executor's: how independent pieces of work are run (side by side in
+worker processes, or one by one), in order either way, so the answer is the same."""
 
 GAIN_UNITY = 10000
 """Gains are in 1/10000 (ICD.md): 10000 means 1.0."""

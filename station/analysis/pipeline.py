@@ -39,6 +39,7 @@ from station.analysis.segments import (
     steady_segments,
 )
 from station.analysis.timeline import Timeline
+from station.core import Mapper
 from station.errors import InputError
 
 
@@ -130,9 +131,9 @@ def tangential_signal(timeline: Timeline) -> NDArray[np.float64]:
 
 
 def measure(
-    timeline: Timeline, options: AnalysisOptions
+    timeline: Timeline, options: AnalysisOptions, run: Mapper = map
 ) -> tuple[list[Measured], list[Rejected]]:
-    """Harmonics of every steady segment of the run."""
+    """Harmonics of every steady segment of the run; ringing holds measured by ``run``."""
     signal = tangential_signal(timeline)
     segments, rejected = steady_segments(
         timeline, signal, settle_periods=options.settle_periods,
@@ -142,7 +143,7 @@ def measure(
         segments = [replace(seg, microsteps_per_sample=seg.microsteps_per_sample * (1 + d))
                     for seg, d in zip(segments, speed_errors(segments, signal), strict=True)]
     if any(seg.ringing for seg in segments):
-        segments = refine_ringing(signal, segments)
+        segments = refine_ringing(signal, segments, run)
     out: list[Measured] = []
     for seg in segments:
         try:

@@ -63,7 +63,7 @@ from threadpoolctl import threadpool_limits
 
 from station.analysis.segments import ChainDecay, SettleFallback
 from station.analysis.timeline import Timeline
-from station.core import GAIN_UNITY, Effect
+from station.core import GAIN_UNITY, Effect, Mapper
 from station.diagnosis.axes import (
     AxisCoupling,
     ElementTurn,
@@ -77,7 +77,6 @@ from station.diagnosis.fit import (
     TOURNAMENT_NFEV,
     Fit,
     HeldOut,
-    Mapper,
     ParameterJudgement,
     ParameterState,
     best_of,
@@ -1708,7 +1707,7 @@ def nominal_of(timeline: Timeline, progress: Callable[[str], None] | None = None
             if holds in seen:
                 break
             seen.append(holds)
-            settled = with_axes_checked(observe(timeline, settle_fallback=fallback))
+            settled = with_axes_checked(observe(timeline, settle_fallback=fallback, run=run))
             if holds_of(settled.segments) in kept:
                 break
             obs = settled

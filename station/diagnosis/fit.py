@@ -43,11 +43,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares, lsq_linear
 
+from station.core import Mapper
 from station.diagnosis.model import BlockKind, Model
-
-Mapper = Callable[..., Iterable[Any]]
-"""``map``, or an executor's: how independent polishes are run (side by side in worker
-processes, or one by one), in order either way, so the answer is the same."""
 
 _MAX_NFEV = 40
 _FTOL = 1e-6

@@ -38,7 +38,7 @@ from station.analysis.segments import (
     steady_segments,
 )
 from station.analysis.timeline import Timeline
-from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Axis
+from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Axis, Mapper
 from station.errors import InputError
 from station.recording import RecordingMetadata
 
@@ -317,7 +317,8 @@ def holds_of(segments: Iterable[Segment]) -> Holds:
 
 
 def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
-            settle_fallback: SettleFallback | None = None) -> Observations:
+            settle_fallback: SettleFallback | None = None, run: Mapper = map
+            ) -> Observations:
     """Segment the run and demodulate every steady segment to ``orders`` harmonics.
 
     Holds too short to judge their own settling are used when ``settle_fallback``
@@ -325,8 +326,9 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     fitted the chain on the longer holds). Segments where an order could not be
     fitted (too few samples per period for it) are dropped rather than carried
     with a NaN, so every row is whole; every stretch left out is in ``skipped``.
+    ``run`` measures the ringing of the operating points (side by side in workers).
     """
-    measured, rejected = measure(timeline, _options(orders, settle_fallback))
+    measured, rejected = measure(timeline, _options(orders, settle_fallback), run)
     conditions = group_conditions(measured, timeline.sync_period_s)
     keys: list[ConditionKey] = []
     rows: list[tuple[int, Measured]] = []

@@ -8,6 +8,8 @@ a model fitted to steady harmonics does.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -119,6 +121,22 @@ def test_a_pole_the_data_put_beyond_the_searched_range_is_not_taken() -> None:
     run = _rung(5, complex(TRUE.real, 2 * TRUE.imag), 0.3)
     model = _segments(run)
     assert refine_ringing(run.signal, model) == model
+
+
+def test_operating_points_measured_side_by_side_give_the_same_poles() -> None:
+    """The diagnosis hands each operating point's holds to a worker: the holds must
+    come back to their places with the poles a search one by one measures."""
+    run = _rung(5, TRUE, 0.3)
+    model = _segments(run)
+    # Two operating points, the second's holds interleaved with the first's.
+    segments = [replace(seg, amplitude_mA=seg.amplitude_mA + 100 * (i % 2))
+                for i, seg in enumerate(model)]
+    alone = refine_ringing(run.signal, segments)
+    with ThreadPoolExecutor(2) as pool:
+        side_by_side = refine_ringing(run.signal, segments, pool.map)
+    assert side_by_side == alone
+    assert [s.amplitude_mA for s in alone] == [s.amplitude_mA for s in segments]
+    assert all(a.ringing != m.ringing for a, m in zip(alone, segments, strict=True))
 
 
 def test_holds_without_ringing_pass_through_untouched() -> None:
