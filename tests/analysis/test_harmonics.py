@@ -12,6 +12,7 @@ from scipy.signal import lfilter
 from station.analysis.harmonics import (
     DEFAULT_ORDERS,
     JOINT_ORDERS,
+    SampleClock,
     SteadyProjection,
     demodulate,
 )
@@ -235,6 +236,23 @@ def test_a_pole_search_is_given_the_least_squares_residual_of_its_decays(case: s
     coef, *_ = np.linalg.lstsq(design, signal[ok], rcond=None)
     expected = signal[ok] - design @ coef
     np.testing.assert_allclose(window.residual(poles), expected, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("samples", [0, 1, 2, 17, 4000])
+def test_a_clocks_turns_are_the_exponentials_of_its_sample_times(samples: int) -> None:
+    """Over holds of seconds, with samples missing and the decay's change before the
+    window, at rings up to the Nyquist rate: as close to e^{jωt} as ωt itself is known."""
+    rng = np.random.default_rng(samples)
+    present = np.sort(rng.choice(int(1.1 * samples) + 1, samples, replace=False))
+    clock = SampleClock.of(present, 37.0)
+    t = present + 37.0
+    np.testing.assert_array_equal(clock.times, t)
+    for omega in (2 * math.pi * 37.0 / 1000.0, 0.9 * math.pi, -0.3):
+        # ωt is rounded to its own last bit, which at the end of 4000 samples is 2e-12.
+        known = 4 * np.finfo(float).eps * abs(omega) * float(t.max(initial=1.0))
+        (table,) = clock.tables(np.array([omega]))
+        np.testing.assert_allclose(clock.turns(table), np.exp(1j * omega * t), rtol=0,
+                                   atol=known)
 
 
 def test_mismatched_shapes_and_too_few_samples_are_refused() -> None:
