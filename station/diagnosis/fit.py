@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares, lsq_linear
+from scipy.optimize import OptimizeResult, least_squares, lsq_linear
 
 from station.core import Mapper
 from station.diagnosis.model import BlockKind, Model
@@ -384,11 +384,22 @@ def polish(model: Model, x0: NDArray[np.float64], max_nfev: int = _MAX_NFEV) -> 
     """Bounded least squares from ``x0`` as it is (``fit`` first re-solves every start's
     linear parameters, which can move a start away from a point known to be good)."""
     low, high = model.layout.bounds()
-    result = least_squares(
-        model.residuals, np.clip(x0, *_inside(model)), jac=lambda p: jacobian(model, p),
-        bounds=(low, high), x_scale="jac", method="trf", max_nfev=max_nfev, ftol=_FTOL,
-        xtol=_FTOL,
-    )
+
+    def solve(**solver: str) -> OptimizeResult:
+        return least_squares(
+            model.residuals, np.clip(x0, *_inside(model)), jac=lambda p: jacobian(model, p),
+            bounds=(low, high), x_scale="jac", method="trf", max_nfev=max_nfev, ftol=_FTOL,
+            xtol=_FTOL, **solver,
+        )
+
+    try:
+        result = solve()
+    except np.linalg.LinAlgError:
+        # LAPACK's divide-and-conquer SVD, behind each step of the dense trust region, can
+        # fail to converge on a finite Jacobian (benchmark trial detent_torque@76034821, a
+        # belt, ended the whole diagnosis there): the iterative subproblem solver needs no
+        # SVD, and the polish goes on from the same start.
+        result = solve(tr_solver="lsmr")
     return Fit(model, result.x, result.fun, result.jac,
                resting(model, result.x, np.asarray(result.active_mask, dtype=np.int8)),
                converged=result.status > 0)

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pytest
+from scipy.optimize._lsq import trf
 from threadpoolctl import threadpool_limits
 
 from station.analysis import segments
@@ -918,6 +919,28 @@ def test_a_grid_prescreened_by_its_first_linear_pass_keeps_the_exact_rankings_be
             for (chi2, x), (chi2_quick, x_quick) in zip(full[:6], quick[:6], strict=True):
                 assert chi2_quick == pytest.approx(chi2, rel=1e-9)
                 np.testing.assert_allclose(x_quick, x, rtol=1e-9, atol=1e-12)
+
+
+def test_a_polish_goes_on_where_the_trust_regions_svd_does_not_converge(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """LAPACK's SVD behind each dense trust-region step can fail on a finite Jacobian
+    (benchmark trial detent_torque@76034821): the polish must still improve on its
+    start, not end the diagnosis."""
+    timeline, _ = _clean(15)
+    failed: list[bool] = []
+
+    def no_convergence(*args: Any, **kwargs: Any) -> None:
+        failed.append(True)
+        raise np.linalg.LinAlgError("SVD did not converge")
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        model = Model(ModelSpec(ChainKind.BELT), observe(timeline))
+        (chi2_start, start), *_ = screen(model, nominal_starts(model))
+        monkeypatch.setattr(trf, "svd", no_convergence)
+        polished = polish(model, start, max_nfev=8)
+    assert failed
+    assert polished.chi2 < chi2_start
 
 
 def test_a_chain_grid_passed_once_for_every_linear_group_ranks_as_each_group_alone() -> None:
