@@ -97,6 +97,7 @@ from station.diagnosis.groups import (
     GROUP_PARAMETERS,
     GROUP_STARTS,
     GROUP_TOURNAMENT,
+    belt_as_coupling,
     scan_trials,
     separating_experiment,
 )
@@ -236,6 +237,9 @@ SPLIT_KEEP = 2
 """...and as ranked with the gain errors' difference fitted (``fit.SCREEN_HELD``)."""
 FINALISTS = 2
 """A larger model's starts polished in full after the short tournament (``best_of``)."""
+SWAPPED_FINALISTS = 1
+"""A coupling's chains from its base's belt (``groups.belt_as_coupling``) polished in full
+after their own short tournament."""
 DIVERSE_MIN_RATIO = 0.5
 """A belt's grid points at load-to-rotor inertia ratios from this one up are each tried
 at least once (``_diverse``)."""
@@ -748,8 +752,16 @@ def fit_spec(obs: Observations, spec: ModelSpec, base: Fit, free: Fit | None = N
                                                   if e in GROUP_STARTS
                                                   for v in GROUP_STARTS[e](model, unbent))], 2)
     # A coupling's starts are chains spread over a grid: no first heat (GROUP_TOURNAMENT).
-    return never_worse(model, best_of(model, chosen, finalists=FINALISTS,
-                                      heat=not added & GROUP_TOURNAMENT), base, start)
+    heat = not added & GROUP_TOURNAMENT
+    result = best_of(model, chosen, finalists=FINALISTS, heat=heat)
+    if Effect.LOAD_RESONANCE in added:
+        # The base's belt as the coupling: chains far from the base, ranked apart.
+        chains = [model.with_values(start, v) for v in belt_as_coupling(model, start)]
+        swapped = chosen_starts(model, chains, len(chains))
+        if swapped:
+            other = best_of(model, swapped, finalists=SWAPPED_FINALISTS, heat=False)
+            result = min(result, other, key=lambda f: f.chi2)
+    return never_worse(model, result, base, start)
 
 
 def _bent(base: Fit) -> bool:

@@ -39,6 +39,58 @@ def _starts_resonance(model: Model, p: NDArray[np.float64]) -> list[Starts]:
             for f in hz for frac in (0.2, 0.6)]
 
 
+SPLIT_GRID = (0.25, 0.6)
+"""Shares of what lay beyond a belt that fitted a coupling that stay at the pulley
+(``belt_as_coupling``); the rest is the load behind the belt."""
+STIFF_BELT_GRID = (2.5, 6.0)
+"""The belt's frequency where a coupling took its place, in multiples of the highest
+mode below it (``belt_as_coupling``)."""
+
+
+def belt_as_coupling(model: Model, p: NDArray[np.float64]) -> list[Starts]:
+    """Chains for a coupling group on a belt whose model without it (``p``) let its belt
+    be the coupling: the belt's spring becomes the coupling's, what lay beyond it is
+    split between the pulley and the load, and a stiffer belt is put between them.
+
+    A belt model without the coupling fits the chain's lowest mode whichever spring it
+    is on: on benchmark trial detent_torque+load_resonance@1898614460 (rotor, coupling at
+    64 Hz, pulley, belt at 405 Hz, load) every model without the coupling had its belt at
+    43.7 Hz with the rotor alone at 307 Hz and all else beyond, the plant's lowest mode on
+    its coupling. From there no coupling start found the plant's chain (χ² 1,310, where the
+    plant's own chain polished to 1,029), and current-loop lag was named in its place.
+    The inverse of ``diagnose.coupling_as_belt``: the same mechanics, with the springs
+    swapped. These chains start far from the base, so they are ranked among themselves
+    (``diagnose.fit_spec``): after a short polish beside the spread starts, the one that
+    polished to the plant's chain stood eighth of twenty and was cut.
+    """
+    if model.spec.chain is not ChainKind.BELT:
+        return []
+    sl = model.layout.slices
+
+    def value(name: str) -> float:
+        return float(p[sl[name]][0])
+
+    beyond = math.exp(value("log_load_ratio"))  # in units of the inertia before the belt
+    belt_hz = math.exp(value("log_belt_hz"))
+    rotor_hz = math.exp(value("log_rotor_hz"))
+    out: list[Starts] = []
+    for share in SPLIT_GRID:
+        grows = 1.0 + share * beyond  # the inertia before the new belt, as before the old
+        coupling_hz = belt_hz / math.sqrt(share)
+        below = max(coupling_hz, rotor_hz / math.sqrt(grows))
+        for stiff in STIFF_BELT_GRID:
+            out.append({
+                "log_rotor_hz": [math.log(rotor_hz) - 0.5 * math.log(grows)],
+                "rotor_damping_ratio": [value("rotor_damping_ratio") / math.sqrt(grows)],
+                "coupling_fraction": [share * beyond / grows],
+                "log_coupling_hz": [math.log(coupling_hz)],
+                "coupling_damping_ratio": [value("belt_damping_ratio") / math.sqrt(share)],
+                "log_load_ratio": [math.log((1.0 - share) * beyond / grows)],
+                "log_belt_hz": [math.log(stiff * below)],
+            })
+    return out
+
+
 def _starts_lag(model: Model, p: NDArray[np.float64]) -> list[Starts]:
     # A lag looks like a negative sensor delay: start with the sensor's share moved over.
     a1 = float(p[model.layout.slices["sensor_a1_ms"]][0])

@@ -75,6 +75,7 @@ from station.diagnosis.groups import (
     GROUP_PARAMETERS,
     ClockScan,
     _starts_clock,
+    belt_as_coupling,
     segment_delays,
 )
 from station.diagnosis.model import (
@@ -534,6 +535,67 @@ def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_
     # A disk declares no belt to move it into.
     disk = Model(replace(model.spec, chain=ChainKind.RIGID), obs)
     assert coupling_as_belt(disk, larger) is None
+
+
+def test_a_coupling_gets_its_spring_back_from_a_belt_that_had_taken_the_couplings_mode(
+) -> None:
+    """On this belt (rotor, coupling at 64 Hz, pulley, belt at 405 Hz, load; detent
+    torque) every model without the coupling put its belt at the chain's lowest mode with
+    the rotor alone before it: the coupling's spring, taken for the belt's. From there
+    the coupling's spread starts ended at χ² 1,310 and current-loop lag was named in its
+    place (1,085); from the plant's own chain the coupling fits 1,029 (benchmark,
+    session 47). ``belt_as_coupling`` moves the belt's spring into the coupling, splits
+    what lay beyond between pulley and load, and puts a stiffer belt between them: the
+    same mechanics below the new belt, and from there the fit finds the plant's chain."""
+    detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
+    case = Case(TrialClass(frozenset({detent, coupling})), 1898614460)
+    obs = observe(_timeline(case))
+    unit = plan_trial(case).unit
+    motor, belt, plant = unit.motor, unit.mechanics.belt, unit.mechanics.coupling
+    assert belt is not None and plant is not None
+    rotor = motor.rotor_inertia_kgm2
+    beyond = belt.motor_pulley_inertia_kgm2 + belt.load_inertia_kgm2 * belt.reduction**2
+    spring = motor.rotor_teeth * motor.kt_Nm_per_A  # the field's, at 1 A
+    smaller = Model(ModelSpec(ChainKind.BELT, frozenset({detent})), obs)
+    larger = Model(ModelSpec(ChainKind.BELT, frozenset({detent, coupling})), obs)
+    # The chain as the smaller models fitted it: the coupling's spring as the belt.
+    taken = smaller.with_values(smaller.layout.start(), {
+        **_sensor_truth(unit.sensor),
+        "log_rotor_hz": [math.log(math.sqrt(spring / rotor) / (2 * math.pi))],
+        "log_load_ratio": [math.log(beyond / rotor)],
+        "log_belt_hz": [math.log(math.sqrt(plant.stiffness_Nm_per_rad / beyond)
+                                 / (2 * math.pi))],
+        "belt_damping_ratio": [plant.damping_ratio
+                               * math.sqrt(belt.motor_pulley_inertia_kgm2 / beyond)],
+    })
+    with threadpool_limits(limits=1, user_api="blas"):
+        base = fit(smaller, [_refine_angles(smaller, taken)], keep=1)
+    start = _transplant(larger, base)
+    chains = [larger.with_values(start, v) for v in belt_as_coupling(larger, start)]
+    assert chains
+    # The rotor stays as it was, with its drag; the coupling carries the belt's spring.
+    swapped = larger.stages(chains[0])
+    unswapped = smaller.stages(base.params)
+    ratio2 = smaller.gear_ratio**2
+    assert swapped[0].inertia == pytest.approx(unswapped[0].inertia, rel=1e-9)
+    assert swapped[0].damping == pytest.approx(unswapped[0].damping, rel=1e-9)
+    assert swapped[0].spring == pytest.approx(unswapped[0].spring * ratio2, rel=1e-9)
+    assert swapped[0].spring_damping == pytest.approx(unswapped[0].spring_damping * ratio2,
+                                                      rel=1e-9)
+    assert (swapped[1].inertia + swapped[2].inertia * ratio2
+            == pytest.approx(unswapped[1].inertia * ratio2, rel=1e-9))
+    with threadpool_limits(limits=1, user_api="blas"):
+        found = best_of(larger, chosen_starts(larger, chains, len(chains)), finalists=1,
+                        heat=False)
+    assert found.chi2 < 0.5 * base.chi2
+    assert math.exp(found.scalar("log_coupling_hz")) == pytest.approx(plant.resonance_hz,
+                                                                      rel=0.25)
+    assert math.exp(found.scalar("log_belt_hz")) == pytest.approx(
+        math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi),
+        rel=0.35)
+    # A disk has no belt to take a coupling's mode.
+    disk = Model(ModelSpec(ChainKind.RIGID, frozenset({detent, coupling})), obs)
+    assert belt_as_coupling(disk, disk.layout.start()) == []
 
 
 def test_a_group_stopped_just_short_of_a_bound_it_may_not_rest_on_rests_there() -> None:
