@@ -27,7 +27,8 @@ eccentricity at 7,171 for 1,361 values; each hold's frequency measured moving li
 the hold (its sidebands ride on it), 1,531 for 1,429.
 
 The poles are measured by variable projection (each trial pole's harmonics and ringing
-amplitudes are the linear least-squares fit, only the poles are searched), within a
+amplitudes are the linear least-squares fit, only the poles are searched, along the
+projection's exact slopes: ``harmonics.DecayFit.slopes``), within a
 factor of the model's decay and a share of its frequency, and kept only where they
 explain more than the parameters they cost: a hold whose ringing is too weak to
 measure keeps the model's, which then also biases nothing.
@@ -35,14 +36,17 @@ measure keeps the model's, which then also biases nothing.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from station.analysis.harmonics import SteadyProjection
+from station.analysis.harmonics import DecayFit, SteadyProjection
 from station.analysis.segments import Segment
 from station.core import Mapper
 
@@ -186,6 +190,32 @@ def _starts(model: tuple[complex, ...], low: NDArray[np.float64], samples: int
     return starts
 
 
+TANGENT_STEP = 1e-6
+"""Step of the central differences of the pole map (``measured_poles``)."""
+DIFFERENCE_STEP = 1e-5
+"""Relative step of a residual's forward differences where its decays' columns are not
+independent (``measured_poles``)."""
+
+
+def _differenced(residual: Callable[[NDArray[np.float64]], NDArray[np.float64]],
+                 x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Forward differences of ``residual`` at ``x``, each step ``DIFFERENCE_STEP`` of
+    the parameter's size or of 1."""
+    base = residual(x)
+    out = np.empty((base.size, x.size))
+    for j in range(x.size):
+        y = x.copy()
+        y[j] += DIFFERENCE_STEP * max(1.0, abs(float(x[j])))
+        out[:, j] = (residual(y) - base) / (y[j] - x[j])
+    return out
+
+
+def _window_residual(ring: Callable[[NDArray[np.float64]], Ring], s: Segment,
+                     w: SteadyProjection, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    r = ring(x)
+    return w.residual(*s.decays(r.poles, r.drift))
+
+
 def measured_poles(members: list[Segment], windows: list[SteadyProjection],
                    model: tuple[complex, ...], rate_range: float, frequency_range: float,
                    *, grid: bool = True, drift_range: float = 0.0,
@@ -211,10 +241,47 @@ def measured_poles(members: list[Segment], windows: list[SteadyProjection],
     def ring(x: NDArray[np.float64]) -> Ring:
         return Ring(_poles(model, x), float(x[-1]) / span if drifts else 0.0)
 
+    fitted: dict[bytes, list[DecayFit]] = {}  # the latest point's fits, for its slopes
+
+    def fitted_at(x: NDArray[np.float64]) -> list[DecayFit]:
+        key = x.tobytes()
+        if key not in fitted:
+            r = ring(x)
+            fitted.clear()
+            fitted[key] = [w.fit(*s.decays(r.poles, r.drift))
+                           for s, w in zip(members, windows, strict=True)]
+        return fitted[key]
+
     def residual(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        r = ring(x)
-        return np.concatenate([w.residual(*s.decays(r.poles, r.drift))
-                               for s, w in zip(members, windows, strict=True)])
+        return np.concatenate([f.residual for f in fitted_at(x)])
+
+    def tangents(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(P, decays, 3): how each decay's rate, frequency and sweep moves with each
+        parameter; central differences of the pole map, exact to rounding (it scales).
+        The same for every member: their sidebands differ by a constant turn."""
+        out = np.empty((x.size, len(members[0].decays(model)[0]), 3))
+        for j in range(x.size):
+            step = np.zeros(x.size)
+            step[j] = TANGENT_STEP
+            ends = []
+            for sign in (1.0, -1.0):
+                r = ring(x + sign * step)
+                poles, sweeps = members[0].decays(r.poles, r.drift)
+                ends.append(np.array([[p.real, p.imag, c] for p, c in itertools.zip_longest(
+                    poles, sweeps, fillvalue=0.0)]))
+            out[j] = (ends[0] - ends[1]) / (2.0 * TANGENT_STEP)
+        return out
+
+    def slopes(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        moves = tangents(x)
+        blocks = []
+        for s, w, f in zip(members, windows, fitted_at(x), strict=True):
+            block = f.slopes(moves)
+            if block is None:
+                # Columns the window cannot tell apart: the residual's own differences.
+                block = _differenced(functools.partial(_window_residual, ring, s, w), x)
+            blocks.append(block)
+        return np.concatenate(blocks)
 
     layout = _layout(model)
     low = np.zeros(sum(1 + (f is not None) for _, f in layout) + drifts)
@@ -234,7 +301,7 @@ def measured_poles(members: list[Segment], windows: list[SteadyProjection],
     better = [starts[1 + j] for cost, j in scored[:STARTS] if cost < float(before @ before)]
     for start in [starts[0], *better]:
         try:
-            fits.append(least_squares(residual, start, bounds=(low, -low), diff_step=1e-5,
+            fits.append(least_squares(residual, start, jac=slopes, bounds=(low, -low),
                                       x_scale=0.01, ftol=SEARCH_TOLERANCE,
                                       xtol=SEARCH_TOLERANCE, max_nfev=SEARCH_EVALUATIONS))
         except (ValueError, np.linalg.LinAlgError):

@@ -238,6 +238,59 @@ def test_a_pole_search_is_given_the_least_squares_residual_of_its_decays(case: s
     np.testing.assert_allclose(window.residual(poles), expected, rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("noise", [0.0, 0.01, 0.3])
+def test_a_pole_searchs_slopes_are_those_of_its_residual(noise: float) -> None:
+    """``DecayFit.slopes`` against central differences of the residual, with
+    samples missing, a mode and its sideband swept, a real pole beside them, and noise
+    from none to far above the ringing: the variable projection's derivative has a term
+    as large as the residual, which an approximation that drops it gets wrong exactly
+    where a belt's holds are (ringing near the noise)."""
+    angle = _angle(round(8 * SPP))
+    signal = _drop(_signal(angle, CONTENT), 0.10, 5)
+    ok = ~np.isnan(signal)
+    t = 40.0 + np.arange(angle.size)
+    turn = 2j * math.pi / SPP
+
+    def decays(x: NDArray[np.float64]) -> tuple[list[complex], list[float]]:
+        """A mode (rate and frequency scaled by e^x), its sideband, a real pole; the
+        mode's sweep moved by x[2]."""
+        mode = complex(-0.004 * math.exp(x[0]), 2 * math.pi * 37.0 / 1000.0 * math.exp(x[1]))
+        sweep = 2e-7 * (1.0 + x[2])
+        return [mode, mode + turn, complex(-0.02 * math.exp(x[0]), 0.0)], [sweep, sweep, 0.0]
+
+    truth = np.array([0.1, -0.01, 0.5])
+    poles, sweeps = decays(truth)
+    middle = 0.5 * (t[ok][0] + t[ok][-1])
+    for pole, sweep, amplitude in zip(poles, sweeps, (0.6, 0.2, 0.4), strict=True):
+        signal += amplitude * np.exp(pole.real * t) * np.cos(
+            pole.imag * t + 0.5 * sweep * (t - middle) ** 2 + 0.3)
+    signal += np.random.default_rng(12).normal(0.0, noise, signal.size)
+    window = SteadyProjection.of(signal, angle, SPP, decay_from=40.0)
+
+    def tangents(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        out = []
+        for j in range(x.size):
+            step = np.eye(x.size)[j] * 1e-6
+            ends = [np.array([[p.real, p.imag, c] for p, c in zip(*decays(x + sign * step),
+                                                                  strict=True)])
+                    for sign in (1.0, -1.0)]
+            out.append((ends[0] - ends[1]) / 2e-6)
+        return np.array(out)
+
+    for x in (truth, np.zeros(3), np.array([0.3, 0.02, -0.4])):
+        slopes = window.fit(*decays(x)).slopes(tangents(x))
+        assert slopes is not None
+        step = 1e-6
+        differenced = np.column_stack([
+            (window.residual(*decays(x + step * e)) - window.residual(*decays(x - step * e)))
+            / (2 * step) for e in np.eye(3)])
+        np.testing.assert_allclose(slopes, differenced, rtol=0,
+                                   atol=1e-5 * np.abs(differenced).max())
+    # Columns the window cannot tell apart: no slope, the caller differences the residual.
+    mode = poles[0]
+    assert window.fit([mode, mode], [0.0, 0.0]).slopes(np.zeros((1, 2, 3))) is None
+
+
 @pytest.mark.parametrize("samples", [0, 1, 2, 17, 4000])
 def test_a_clocks_turns_are_the_exponentials_of_its_sample_times(samples: int) -> None:
     """Over holds of seconds, with samples missing and the decay's change before the
