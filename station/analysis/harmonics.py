@@ -166,6 +166,11 @@ class SampleClock:
         return out
 
 
+def _middle(times: NDArray[np.float64]) -> float:
+    """The window's middle t̄, where a swept decay's frequency is referred (``_decay_design``)."""
+    return 0.5 * (float(times[0]) + float(times[-1])) if times.size else 0.0
+
+
 def _decay_design(clock: SampleClock, poles: Sequence[complex],
                   double: Sequence[complex] = (), sweeps: Sequence[float] = ()
                   ) -> NDArray[np.float64]:
@@ -183,7 +188,7 @@ def _decay_design(clock: SampleClock, poles: Sequence[complex],
     every = [*poles, *double]
     swept = list(sweeps) + [0.0] * (len(every) - len(sweeps))
     tables = clock.tables(np.array([p.imag for p in every]))
-    middle = 0.5 * (float(t[0]) + float(t[-1])) if t.size else 0.0
+    middle = _middle(t)
     # A pole's sidebands share its rate and its sweep: each envelope and chirp once.
     envelopes: dict[tuple[float, bool], NDArray[np.float64]] = {}
     chirps: dict[float, NDArray[np.complex128]] = {}
@@ -319,10 +324,10 @@ class SteadyProjection:
             inside[:m] = 0.0
             back, _, _ = lapack.dormqr("L", "N", reflectors, scales, inside, _REFLECT_WORK,
                                        overwrite_c=True)
-            return DecayFit(self, tuple(decays), tuple(sweeps), back[:, 0], raw,
-                            (reflectors, scales), amplitudes)
+            return DecayFit(self, tuple(decays), back[:, 0], raw, (reflectors, scales),
+                            amplitudes)
         coef, *_ = np.linalg.lstsq(d, self.left, rcond=None)
-        return DecayFit(self, tuple(decays), tuple(sweeps), self.left - d @ coef, raw)
+        return DecayFit(self, tuple(decays), self.left - d @ coef, raw)
 
 
 @dataclass(frozen=True)
@@ -332,7 +337,6 @@ class DecayFit:
 
     window: SteadyProjection
     decays: tuple[complex, ...]
-    sweeps: tuple[float, ...]
     residual: NDArray[np.float64]
     design: NDArray[np.float64]  # the decays' columns before the harmonics are projected out
     # The projected columns' Householder QR (dgeqrf), None where they are not independent
@@ -359,8 +363,7 @@ class DecayFit:
         reflectors, scales = self.factors
         basis, t = self.window.basis, self.window.clock.times
         m = self.design.shape[1]
-        middle = 0.5 * (float(t[0]) + float(t[-1])) if t.size else 0.0
-        h = 0.5 * (t - middle) ** 2
+        h = 0.5 * (t - _middle(t)) ** 2
         # Each decay's fitted part is Re(z·w), z = e^{σt + jφ} its columns as one complex
         # number and w from its amplitudes; a move dσ, dω, dc turns z into
         # z·(t·dσ + j·t·dω + j·h·dc).

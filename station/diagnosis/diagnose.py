@@ -417,20 +417,42 @@ class Finding:
 
 
 @dataclass(frozen=True)
+class LoneHold:
+    """The one hold that carries a held-out residual the others do not (``Unexplained``)."""
+
+    condition: ConditionKey
+    start_s: float
+    stop_s: float
+    chi2: float
+    values: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**self.condition.as_dict(), "start_s": round(self.start_s, 3),
+                "stop_s": round(self.stop_s, 3), "held_out_chi2": round(self.chi2, 1),
+                "values": self.values}
+
+
+@dataclass(frozen=True)
 class Unexplained:
-    """What the chosen model leaves on held-out conditions beyond the noise."""
+    """What the chosen model leaves on held-out conditions beyond the noise; ``lone``: the
+    hold without which it would not be beyond it (then it is not ``significant``)."""
 
     chi2: float
     values: int  # held-out residual values (both parts of every phasor)
     significant: bool
+    lone: LoneHold | None = None
 
     @property
     def ratio(self) -> float:
         return self.chi2 / max(self.values, 1)
 
     def as_dict(self) -> dict[str, Any]:
-        return {"held_out_chi2": round(self.chi2, 1), "values": self.values,
-                "chi2_per_value": round(self.ratio, 3), "significant": self.significant}
+        out: dict[str, Any] = {"held_out_chi2": round(self.chi2, 1), "values": self.values,
+                               "chi2_per_value": round(self.ratio, 3),
+                               "significant": self.significant}
+        if self.lone is not None:
+            out["carried_by_one_hold"] = self.lone.as_dict()
+        return out
 
 
 @dataclass(frozen=True)
@@ -1491,10 +1513,40 @@ def paired_excess(winner: HeldOut, rival: HeldOut) -> tuple[float, float]:
 
 
 def unexplained_of(model: Candidate) -> Unexplained:
-    values = int(model.held.residuals.size)
+    """What ``model`` leaves on held-out conditions, significant only when it stays beyond
+    the noise without its worst hold.
+
+    Missing physics shows in every hold of the conditions it touches (a condition has the
+    steps of its trims beside it); one hold alone is a transient the settling did not
+    describe. Benchmark control none@945116017 (a clean belt, order 2 of 25 Hz on its
+    50.7 Hz belt mode at 430 mA) left 2,720 for 970 values, 1,794 of it in one hold of
+    280 ms, where the next hold at the same operating point fitted within its noise; the
+    model left as much from the plant's own chain, and a clean unit was reported as a
+    mismatch.
+    """
+    held = model.held.residuals
+    values = int(held.size)
     chi2 = model.held.total
-    limit = UNEXPLAINED_RATIO * values + 4.0 * math.sqrt(2.0 * values)
-    return Unexplained(chi2, values, chi2 > limit)
+    if chi2 <= _unexplained_limit(values):
+        return Unexplained(chi2, values, False)
+    fitted = model.fit.model
+    rows = fitted.residual_rows()
+    segment = rows >= 0
+    per_hold = np.bincount(rows[segment], weights=held[segment] ** 2,
+                           minlength=fitted.obs.count)
+    worst = int(np.argmax(per_hold))
+    count = int(np.count_nonzero(rows == worst))
+    if chi2 - float(per_hold[worst]) > _unexplained_limit(values - count):
+        return Unexplained(chi2, values, True)
+    obs = fitted.obs
+    start, stop = (float(t) * obs.metadata.sync_period_s for t in obs.span[worst])
+    lone = LoneHold(obs.conditions[int(obs.condition[worst])], start, stop,
+                    float(per_hold[worst]), count)
+    return Unexplained(chi2, values, False, lone)
+
+
+def _unexplained_limit(values: int) -> float:
+    return UNEXPLAINED_RATIO * values + 4.0 * math.sqrt(2.0 * max(values, 0))
 
 
 def _explained_cells(before: Candidate, after: Candidate
@@ -1873,6 +1925,13 @@ def diagnose_observations(obs: Observations, progress: Callable[[str], None] | N
             f"a significant residual is left that no effect of the vocabulary explains "
             f"(held-out χ² {left.chi2:.0f} for {left.values} values); see the located cells "
             "of kind 'unexplained'")
+    elif left.lone is not None:
+        lone = left.lone
+        warnings.append(
+            f"one hold ({lone.condition.label()}, {lone.start_s:.2f}-{lone.stop_s:.2f} s) "
+            f"leaves held-out χ² {lone.chi2:.0f} for {lone.values} values that the other "
+            "holds do not: taken for a transient the settling did not describe, not for "
+            "missing physics (repeat the hold to be sure)")
     warnings += settling_warnings(obs, untrusted)
     return Diagnosis(
         observations=obs,

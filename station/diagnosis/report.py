@@ -371,6 +371,15 @@ def _verdict(d: Diagnosis, doc: Mapping[str, Any]) -> str:
             f"{_e(left.values)} values ({_e(_num(left.ratio, 3))} per value, noise is 1). "
             "No id describes what remains; where it is, is listed below as "
             "<i>unexplained</i>.</p>")
+    elif left.lone is not None:
+        lone = left.lone
+        residual = (
+            f"<p>What the {'extended' if d.effects else 'nominal'} model leaves on held-out "
+            f"conditions is noise but for one hold: χ² {_e(_chi2(left.chi2))} for "
+            f"{_e(left.values)} values, {_e(_chi2(lone.chi2))} of it in the hold at "
+            f"{_e(lone.condition.label())}, {lone.start_s:.2f}–{lone.stop_s:.2f} s, which the "
+            "other holds do not share: a transient the settling did not describe, not "
+            "missing physics.</p>")
     else:
         residual = (
             f"<p>What the {'extended' if d.effects else 'nominal'} model leaves on held-out "

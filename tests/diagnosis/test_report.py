@@ -20,7 +20,7 @@ import pytest
 
 from station.analysis.reader import read_recording
 from station.core import Effect
-from station.diagnosis.diagnose import Diagnosis, LocatedKind, Unexplained, diagnose
+from station.diagnosis.diagnose import Diagnosis, LocatedKind, LoneHold, Unexplained, diagnose
 from station.diagnosis.report import MAX_HARMONIC_ROWS, _chi2, render_html, write_report
 from station.sim.concealed import Case, TrialClass, plan_trial, record_trial
 
@@ -111,6 +111,19 @@ def test_report_says_plainly_when_a_significant_residual_is_left(diagnosis: Diag
     assert "A significant residual is left" in text
     assert "9876.0 for 1200 values" in text
     assert "No id describes what remains" in text
+
+
+def test_report_names_the_one_hold_that_carries_what_is_left_instead_of_calling_it_noise(
+    diagnosis: Diagnosis,
+) -> None:
+    condition = diagnosis.observations.conditions[0]
+    lone = LoneHold(condition, 7.144, 7.424, 1793.9, 17)
+    left = Unexplained(chi2=2719.5, values=970, significant=False, lone=lone)
+    text = _text(render_html(replace(diagnosis, unexplained=left), source=SOURCE))
+    assert "noise but for one hold: χ² 2719.5 for 970 values, 1793.9 of it" in text
+    assert f"{condition.label()}, 7.14–7.42 s" in text
+    assert "is noise: χ²" not in text
+    assert "A significant residual is left" not in text
 
 
 def test_report_shows_measured_nominal_and_extended_harmonics(
