@@ -25,8 +25,10 @@ import can
 import numpy as np
 from can.io.mf4 import STD_DTYPE, MF4Writer
 from can.util import channel2int
+from numpy.typing import NDArray
 
 from drivers.cia301 import SYNC_COB_ID
+from station.blf import write_can_frames
 from station.core import Axis
 from station.errors import InputError, RecordingError
 
@@ -316,6 +318,38 @@ class SimulatedClock:
         return stamp
 
 
+class FrameLoss:
+    """Which frames a logger that drops ``probability`` of them drops, one seeded draw per
+    frame in bus order: a simulated recording with losses is reproducible, and the frames
+    it lost can be told apart from outside (``SimulatedFrames.kept``)."""
+
+    _BLOCK: Final = 65536  # draws made at a time
+
+    def __init__(self, probability: float, seed: int) -> None:
+        self.probability = probability
+        self._rng = np.random.default_rng(np.random.SeedSequence([seed, 0x10557]))
+        self._draws = np.empty(0)
+        self._next = 0
+
+    def dropped(self) -> bool:
+        """Whether the next frame is dropped."""
+        return bool(self.dropped_block(1)[0]) if self.probability > 0.0 else False
+
+    def dropped_block(self, count: int) -> NDArray[np.bool_]:
+        """Whether each of the next ``count`` frames is dropped."""
+        out = np.zeros(count, dtype=np.bool_)
+        done = 0
+        while self.probability > 0.0 and done < count:
+            if self._next >= len(self._draws):
+                self._draws = self._rng.random(self._BLOCK)
+                self._next = 0
+            take = min(count - done, len(self._draws) - self._next)
+            out[done:done + take] = self._draws[self._next:self._next + take] < self.probability
+            self._next += take
+            done += take
+        return out
+
+
 class RecordingWriter(can.Listener):
     """Records every frame it is given into an ICD.md §5 recording.
 
@@ -338,12 +372,10 @@ class RecordingWriter(can.Listener):
         if not 0.0 <= loss_probability < 1.0:
             raise InputError(f"frame loss probability must be in [0, 1), got {loss_probability}")
         self.path = path
+        self._format = log_format
         self.metadata = metadata
         self._clock = clock
-        self._loss = loss_probability
-        self._rng = np.random.default_rng(np.random.SeedSequence([seed, 0x10557]))
-        self._draws = np.empty(0)
-        self._draw_index = 0
+        self._loss = FrameLoss(loss_probability, seed)
         self._tmp = path.with_name(f".{path.stem}.{os.getpid()}.partial{path.suffix}")
         self._lock = threading.Lock()
         self._writer: can.Listener | None = _open_log_writer(self._tmp, log_format)
@@ -351,16 +383,6 @@ class RecordingWriter(can.Listener):
         self.frames_written = 0
         self._failure: Exception | None = None
         self._closed = False
-
-    def _dropped(self) -> bool:
-        if self._loss <= 0.0:
-            return False
-        if self._draw_index >= len(self._draws):
-            self._draws = self._rng.random(65536)
-            self._draw_index = 0
-        draw = self._draws[self._draw_index]
-        self._draw_index += 1
-        return bool(draw < self._loss)
 
     def on_message_received(self, msg: can.Message) -> None:
         """Called on the bus reader's thread: it must never raise there, or the
@@ -371,7 +393,7 @@ class RecordingWriter(can.Listener):
                 return
             self.frames_seen += 1
             stamp = msg.timestamp if self._clock is None else self._clock.stamp(msg)
-            if self._dropped():
+            if self._loss.dropped():
                 return
             # One recording is one bus: the channel is left to the writer's
             # default, since interface channel names ("can0", a virtual channel's
@@ -392,6 +414,34 @@ class RecordingWriter(can.Listener):
                 self._failure = exc
                 return
             self.frames_written += 1
+
+    def write_frames(self, timestamps: NDArray[np.float64], cob_ids: NDArray[np.integer],
+                     lengths: NDArray[np.integer], payloads: NDArray[np.uint8]) -> None:
+        """Record standard data frames known all at once (an in-process simulation's, in
+        bus order): the same recording as ``on_message_received`` for each, losses
+        drawn the same, and for a BLF log in one pass (``station.blf``). Only into a
+        recording given nothing yet; nothing may be given after."""
+        if self.frames_seen or self._writer is None or self._failure is not None:
+            raise RecordingError(f"{self.path}: frames at once only into an empty recording")
+        count = len(timestamps)
+        stamps = np.asarray(timestamps, dtype=np.float64)
+        if self._clock is not None or self._format is not LogFormat.BLF:
+            for i in range(count):
+                length = int(lengths[i])
+                self.on_message_received(can.Message(
+                    timestamp=float(stamps[i]), arbitration_id=int(cob_ids[i]),
+                    is_extended_id=False, dlc=length, data=bytes(payloads[i, :length])))
+            return
+        kept = ~self._loss.dropped_block(count)
+        self._stop_writer()  # its empty file is replaced whole
+        try:
+            write_can_frames(self._tmp, stamps[kept], np.asarray(cob_ids)[kept],
+                             np.asarray(lengths)[kept], np.asarray(payloads)[kept])
+        except OSError as exc:
+            self._failure = exc
+            return
+        self.frames_seen = count
+        self.frames_written = int(np.count_nonzero(kept))
 
     def _stop_writer(self) -> None:
         with self._lock:

@@ -1266,6 +1266,13 @@ def _refit_job(obs: Observations, nominal_chi2: float, smaller: Fit, larger: Fit
     return candidate_of(obs, nominal_chi2, result)
 
 
+def _finish_job(obs: Observations, nominal_chi2: float, unfinished: Fit) -> Candidate | None:
+    """``unfinished`` polished on from its point (``Search.finished``); the candidate when
+    that fits better, else None."""
+    result = polish(Model(unfinished.model.spec, obs), unfinished.params.copy())
+    return candidate_of(obs, nominal_chi2, result) if result.chi2 < unfinished.chi2 else None
+
+
 def coupling_as_belt(model: Model, larger: Fit) -> NDArray[np.float64] | None:
     """``model``'s point (a belt without the coupling group) with the coupling ``larger``
     fitted moved into the declared belt, or None when there is none to move.
@@ -1428,6 +1435,24 @@ class Search:
                     self.cache[key] = better
         return [compare(self.latest(t.smaller), t.larger) for t in tests]
 
+    def finished(self, candidates: list[Candidate]) -> list[Candidate]:
+        """``candidates``, each whose polish ran out of evaluations polished on from where
+        it stopped (kept when it fits better), before larger models start from them.
+
+        A base left short of its optimum is finished by every model grown from it
+        instead, each paying for it again. Benchmark trial flux_harmonics@1818367323 (a
+        belt whose nominal fit leaves χ² 10.5 million): flux harmonics alone stopped at
+        5,430, and each of the ten models of the next size, its added group gaining
+        nothing, ended at 1,700: 44 s of its 88.
+        """
+        todo = [c for c in candidates if not c.fit.converged]
+        if todo:
+            done = self._run(_finish_job, [c.fit for c in todo])
+            for candidate, better in zip(todo, done, strict=True):
+                if better is not None and better.fit.chi2 < self.latest(candidate).fit.chi2:
+                    self.cache[(candidate.effects, candidate.spec.sensor_bend)] = better
+        return [self.latest(c) for c in candidates]
+
     def latest(self, candidate: Candidate) -> Candidate:
         """``candidate``'s model as the search now has it fitted (``refined`` may have
         fitted it better since)."""
@@ -1485,8 +1510,11 @@ def _beam(search: Search, progress: Callable[[str], None] | None
         rounds.append(Round(size, tuple(tried.values()), chosen))
         if chosen is None:
             break
-        current = chosen
-        frontier = [t.larger for t in winners[:BEAM]]
+        if size == MAX_EFFECTS:
+            current = chosen
+            break
+        frontier = search.finished([t.larger for t in winners[:BEAM]])
+        current = search.latest(chosen)
     return current, rounds, tuple(dict.fromkeys((*candidates, *current.effects)))
 
 

@@ -75,6 +75,7 @@ from station.physics.params import UnitParams
 from station.physics.plant import DriveCommand, Plant
 from station.recording import (
     FRAMES_RECORDED_KEY,
+    FrameLoss,
     RecordingMetadata,
     RecordingWriter,
     SimulatedClock,
@@ -113,13 +114,6 @@ _NUMPY_CODES: Final = {
 }
 
 _REAL32 = struct.Struct("<f")
-
-# Writer's logger-loss model (station.recording.RecordingWriter): one uniform draw per
-# frame seen, in blocks, from this seed sequence. Mirrored so that a timeline with loss
-# needs no file; tests/sim/test_inprocess.py checks the two agree frame for frame.
-_LOSS_SEED_SALT = 0x10557
-_LOSS_BLOCK = 65536
-
 
 # --- TPDO layouts from the EDS -------------------------------------------------------------
 
@@ -221,12 +215,7 @@ class SimulatedFrames:
         ``RecordingWriter(loss_probability=loss, seed=seed)`` keeps of this traffic."""
         _check_loss(loss)
         count = len(self)
-        if loss <= 0.0 or count == 0:
-            return np.ones(count, dtype=np.bool_)
-        rng = np.random.default_rng(np.random.SeedSequence([seed, _LOSS_SEED_SALT]))
-        blocks = -(-count // _LOSS_BLOCK)
-        draws = np.concatenate([rng.random(_LOSS_BLOCK) for _ in range(blocks)])[:count]
-        kept: NDArray[np.bool_] = draws >= loss
+        kept: NDArray[np.bool_] = ~FrameLoss(loss, seed).dropped_block(count)
         return kept
 
 
@@ -549,9 +538,8 @@ def record_in_process(
                              start_s=time.time())
     metadata = recording_metadata(unit, chosen, frames, extra=extra_metadata)
     with RecordingWriter(out, metadata, loss_probability=loss, seed=seed) as recorder:
-        receive = recorder.on_message_received
-        for message in _reused_messages(frames):
-            receive(message)
+        recorder.write_frames(frames.timestamps, frames.cob_ids, frames.lengths,
+                              frames.payloads)
         recorder.commit()
     return InProcessRecording(
         recording=out,
@@ -560,25 +548,6 @@ def record_in_process(
         frames=recorder.frames_seen,
         frames_recorded=recorder.frames_written,
     )
-
-
-def _reused_messages(frames: SimulatedFrames) -> Iterator[can.Message]:
-    """One message object per frame slot, refilled for each frame: the writer copies what
-    it is given (as the bench reuses its TPDO messages), and allocation is most of the
-    cost of feeding it."""
-    slots: dict[tuple[int, int], can.Message] = {}
-    for cob_id, length, payload, stamp in zip(
-        frames.cob_ids.tolist(), frames.lengths.tolist(), frames.payloads.tolist(),
-        frames.timestamps.tolist(), strict=True,
-    ):
-        message = slots.get((cob_id, length))
-        if message is None:
-            message = can.Message(arbitration_id=cob_id, is_extended_id=False,
-                                  data=bytearray(length))
-            slots[(cob_id, length)] = message
-        message.timestamp = stamp
-        message.data[:] = payload[:length]
-        yield message
 
 
 def _check_loss(loss: float) -> None:

@@ -1718,3 +1718,31 @@ def test_a_loop_lag_is_named_where_the_noise_estimate_exceeds_what_both_models_l
     assert MODEL_ERROR_SHARE * distortion.explained > 10 * test.held_gain
     assert explains_the_rest(distortion, lagging)
     assert test.model_error == 0.0 and test.significant
+
+
+def test_a_model_whose_polish_ran_out_is_finished_before_larger_ones_grow_from_it() -> None:
+    """A model larger ones start from is polished on when its polish stopped at its
+    evaluation budget: left short of its optimum, every larger model grown from it paid
+    for the rest again (benchmark trial flux_harmonics@1818367323, flux alone stopped at
+    χ² 5,430 and each of the ten models of the next size ended at 1,700). A finished
+    one is left as it is."""
+    obs, _ = _observed(Effect.FLUX_HARMONICS, 24)
+    flux = frozenset({Effect.FLUX_HARMONICS})
+    with threadpool_limits(limits=1, user_api="blas"):
+        nominal = fit_nominal(obs)
+        base = nominal.balanced
+        search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
+                        nominal.free, None)
+        done = search.get(flux)
+        model = Model(done.spec, base.model.obs)
+        cut = polish(model, model.with_values(done.fit.params, {"flux": [0.0] * 16}),
+                     max_nfev=2)
+        short = candidate_of(base.model.obs, base.chi2, cut)
+        search.cache[(flux, False)] = short
+        finished = search.finished([short, search.nominal])
+    assert done.fit.converged and not cut.converged
+    assert cut.chi2 > 2.0 * done.fit.chi2
+    assert finished[0].fit.converged
+    assert finished[0].fit.chi2 <= 1.01 * done.fit.chi2
+    assert search.latest(short) is finished[0]
+    assert finished[1] is search.nominal
