@@ -332,22 +332,30 @@ class FrameLoss:
         self._next = 0
 
     def dropped(self) -> bool:
-        """Whether the next frame is dropped."""
-        return bool(self.dropped_block(1)[0]) if self.probability > 0.0 else False
+        """Whether the next frame is dropped (on the bus thread, per frame: no arrays)."""
+        if self.probability <= 0.0:
+            return False
+        self._refill()
+        draw = self._draws[self._next]
+        self._next += 1
+        return bool(draw < self.probability)
 
     def dropped_block(self, count: int) -> NDArray[np.bool_]:
         """Whether each of the next ``count`` frames is dropped."""
         out = np.zeros(count, dtype=np.bool_)
         done = 0
         while self.probability > 0.0 and done < count:
-            if self._next >= len(self._draws):
-                self._draws = self._rng.random(self._BLOCK)
-                self._next = 0
+            self._refill()
             take = min(count - done, len(self._draws) - self._next)
             out[done:done + take] = self._draws[self._next:self._next + take] < self.probability
             self._next += take
             done += take
         return out
+
+    def _refill(self) -> None:
+        if self._next >= len(self._draws):
+            self._draws = self._rng.random(self._BLOCK)
+            self._next = 0
 
 
 class RecordingWriter(can.Listener):
@@ -426,11 +434,12 @@ class RecordingWriter(can.Listener):
         count = len(timestamps)
         stamps = np.asarray(timestamps, dtype=np.float64)
         if self._clock is not None or self._format is not LogFormat.BLF:
-            for i in range(count):
-                length = int(lengths[i])
+            for stamp, cob_id, length, payload in zip(
+                    stamps.tolist(), np.asarray(cob_ids).tolist(), np.asarray(lengths).tolist(),
+                    np.asarray(payloads).tolist(), strict=True):
                 self.on_message_received(can.Message(
-                    timestamp=float(stamps[i]), arbitration_id=int(cob_ids[i]),
-                    is_extended_id=False, dlc=length, data=bytes(payloads[i, :length])))
+                    timestamp=stamp, arbitration_id=cob_id, is_extended_id=False, dlc=length,
+                    data=payload[:length]))
             return
         kept = ~self._loss.dropped_block(count)
         self._stop_writer()  # its empty file is replaced whole
