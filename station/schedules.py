@@ -237,7 +237,7 @@ RANDOM_CHARACTERIZATION: Final = RandomCharacterizationRanges()
 RANDOM_CHARACTERIZATION_NAME: Final = f"{ScheduleName.CHARACTERIZATION.value}-random"
 """Recorded as the schedule's name, so a random draw is never taken for the station's own."""
 
-_HZ_RESOLUTION = 0.5
+HZ_RESOLUTION = 0.5
 """People write speeds in round figures; a 0.5 Hz grid still gives 71 choices."""
 _AMPLITUDE_RESOLUTION_MA = 10
 
@@ -269,9 +269,9 @@ def random_characterization(
             f"({r.lowest_amplitude_mA} mA)"
         )
     hz_grid = np.arange(
-        math.ceil(r.electrical_hz[0] / _HZ_RESOLUTION),
-        math.floor(r.electrical_hz[1] / _HZ_RESOLUTION) + 1,
-    ) * _HZ_RESOLUTION
+        math.ceil(r.electrical_hz[0] / HZ_RESOLUTION),
+        math.floor(r.electrical_hz[1] / HZ_RESOLUTION) + 1,
+    ) * HZ_RESOLUTION
     n_speeds = int(rng.integers(r.speeds[0], r.speeds[1] + 1))
     speeds = [float(hz) for hz in rng.choice(hz_grid, size=n_speeds, replace=False)]
     amplitudes = _draw_amplitudes(rng, rated_current_mA, r)

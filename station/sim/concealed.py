@@ -43,7 +43,12 @@ from station.errors import StationError
 from station.paths import HOME_ENV
 from station.physics.params import UnitParams, UnnamedEffect
 from station.recording import write_json_atomically
-from station.schedules import Schedule, random_characterization
+from station.schedules import (
+    HZ_RESOLUTION,
+    RANDOM_CHARACTERIZATION,
+    Schedule,
+    random_characterization,
+)
 from station.sim.inprocess import record_in_process, simulate_timeline
 from station.sim.population import draw_unit
 
@@ -80,7 +85,10 @@ SCHEDULE_DRAWS: Final = 10
 """Characterizations drawn for one unit until one leaves two speeds it runs at
 (``_runnable``): a disk with strong flux harmonics that stalls at all but one of the drawn
 speeds is characterized again at others, as an engineer would after the first run (each
-of the four benchmark runs before this refused one such trial)."""
+of the four benchmark runs before this refused one such trial), each new one below the
+slowest speed the unit fell out of step at so far (``_ceiling``): benchmark trial
+detent_torque+flux_harmonics@1730680244, a disk that ran only below 10 Hz electrical,
+stalled in all ten draws over the whole 5-40 Hz, and its recording was refused."""
 
 RANGE_MARGIN: Final = 0.8
 """The sensor range is the smallest whose full scale the run's peaks stay under by this
@@ -193,9 +201,15 @@ def _center(rng: np.random.Generator, unit: UnitParams) -> Trims:
     )
 
 
-def _schedule(rng: np.random.Generator, center: Trims) -> Schedule:
+def _schedule(rng: np.random.Generator, center: Trims,
+              below_hz: float = RANDOM_CHARACTERIZATION.electrical_hz[1]) -> Schedule:
+    """A characterization short enough, its speeds at most ``below_hz`` (``_ceiling``)."""
+    r = RANDOM_CHARACTERIZATION
+    choices = int((below_hz - r.electrical_hz[0]) / HZ_RESOLUTION) + 1
+    ranges = replace(r, electrical_hz=(r.electrical_hz[0], below_hz),
+                     speeds=(min(r.speeds[0], choices), min(r.speeds[1], choices)))
     for _ in range(50):
-        schedule = random_characterization(rng, center=center)
+        schedule = random_characterization(rng, center=center, ranges=ranges)
         if schedule.cycles * 1e-3 <= MAX_SCHEDULE_S:
             return schedule
     raise RuntimeError("no characterization short enough was drawn in 50 tries")
@@ -257,15 +271,8 @@ def _runnable(schedule: Schedule, peaks: list[float]) -> tuple[Schedule, float] 
     A characterization needs two speeds: with fewer left, the engineer writes another
     (``plan_trial``).
     """
-    clipped = STALLED_SHARE * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
     speeds = {abs(h.velocity) for h in schedule.holds if h.velocity}
-
-    def share_clipped(speed: int) -> float:
-        at = [peak >= clipped for h, peak in zip(schedule.holds, peaks, strict=True)
-              if abs(h.velocity) == speed]
-        return sum(at) / len(at)
-
-    stalled = {v for v in speeds if share_clipped(v) > STALLED_HOLDS}
+    stalled = _stalled(schedule, peaks)
     if len(speeds - stalled) < 2:
         return None
     if not stalled:
@@ -274,6 +281,28 @@ def _runnable(schedule: Schedule, peaks: list[float]) -> tuple[Schedule, float] 
             if abs(h.velocity) not in stalled]
     return (replace(schedule, holds=tuple(h for h, _ in kept)),
             max((peak for _, peak in kept), default=0.0))
+
+
+def _stalled(schedule: Schedule, peaks: list[float]) -> set[int]:
+    """The speeds (µsteps/s) at which most holds clipped the widest range (``_runnable``)."""
+    clipped = STALLED_SHARE * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
+    holds: dict[int, list[bool]] = {}
+    for hold, peak in zip(schedule.holds, peaks, strict=True):
+        if hold.velocity:
+            holds.setdefault(abs(hold.velocity), []).append(peak >= clipped)
+    return {v for v, at in holds.items() if sum(at) > STALLED_HOLDS * len(at)}
+
+
+def _ceiling(schedule: Schedule, peaks: list[float], below_hz: float) -> float:
+    """The fastest speed (electrical Hz) the next characterization may have: below the
+    slowest one the unit fell out of step at, as an engineer would write the next run,
+    and never so low that two speeds cannot be drawn."""
+    stalled = _stalled(schedule, peaks)
+    if not stalled:
+        return below_hz
+    slowest = min(stalled) / (4.0 * schedule.microsteps)
+    lowest = RANDOM_CHARACTERIZATION.electrical_hz[0] + HZ_RESOLUTION
+    return max(min(below_hz, slowest - HZ_RESOLUTION), lowest)
 
 
 def _range_for(peak_mps2: float) -> int:
@@ -291,8 +320,9 @@ def plan_trial(case: Case) -> TrialPlan:
     unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed)
     center = _center(rng, unit)
     drawn = unit
+    below_hz = RANDOM_CHARACTERIZATION.electrical_hz[1]
     for _ in range(SCHEDULE_DRAWS):
-        schedule = _schedule(rng, center)
+        schedule = _schedule(rng, center, below_hz)
         unit = _friction_within_reach(drawn, schedule)
         # A first run at the widest range: the range a careful engineer would then set.
         # Holds at extreme trims may still clip there (a light disk shaken hard): the
@@ -303,6 +333,7 @@ def plan_trial(case: Case) -> TrialPlan:
         if runnable is not None:
             schedule, peak = runnable
             break
+        below_hz = _ceiling(schedule, peaks, below_hz)
     else:  # as last drawn: the diagnosis says what it could not use
         peak = max(peaks, default=0.0)
     schedule = replace(schedule, name="characterization", sensor_range_g=_range_for(peak))

@@ -13,11 +13,12 @@ from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Effect
 from station.diagnosis.diagnose import nominal_of
 from station.physics.params import UnitParams
 from station.physics.plant import modal_analysis
-from station.schedules import RANDOM_CHARACTERIZATION, random_characterization
+from station.schedules import RANDOM_CHARACTERIZATION, random_characterization, velocity_for
 from station.sim.concealed import (
     FRICTION_HEADROOM,
     Case,
     TrialClass,
+    _ceiling,
     _runnable,
     _steady_peaks,
     nominal_equivalent,
@@ -134,3 +135,36 @@ def test_a_unit_that_runs_at_one_drawn_speed_only_is_characterized_at_others() -
     running = {abs(h.velocity) for h, peak in zip(probe.holds, _steady_peaks(run, probe),
                                                   strict=True) if h.velocity and peak < clipped}
     assert len(running) >= 2
+
+
+def test_a_unit_that_stalls_above_a_speed_is_characterized_again_below_it() -> None:
+    """Benchmark, session 50 (detent_torque+flux_harmonics@1730680244, a disk that runs only
+    below about 10 Hz electrical): ten characterizations drawn over the whole 5-40 Hz all
+    stalled, and the last one's recording was refused. Each new draw now stays below the
+    slowest speed the unit fell out of step at so far, as the engineer would write it."""
+    cls = TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS}))
+    plan = plan_trial(Case(cls, 1730680244))
+    probe = replace(plan.schedule, sensor_range_g=max(SENSOR_RANGES_G))
+    run = simulate_timeline(plan.unit, probe, seed=plan.case.seed)
+    clipped = 0.99 * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
+    running = {abs(h.velocity) for h, peak in zip(probe.holds, _steady_peaks(run, probe),
+                                                  strict=True) if h.velocity and peak < clipped}
+    assert len(running) >= 2
+    assert max(running) / (4 * probe.microsteps) < 13.5  # the first draw's slowest stall
+
+
+@pytest.mark.parametrize(("stalled_hz", "below_hz", "ceiling"), [
+    ((), 40.0, 40.0),  # nothing stalled: as before
+    ((13.5, 24.0), 40.0, 13.0),  # below the slowest stall
+    ((13.5,), 9.0, 9.0),  # never above an earlier ceiling
+    ((5.0, 5.5), 40.0, 5.5),  # never so low that two speeds cannot be drawn
+])
+def test_the_next_characterization_stays_below_the_slowest_stalled_speed(
+        stalled_hz: tuple[float, ...], below_hz: float, ceiling: float) -> None:
+    schedule = random_characterization(np.random.default_rng(5))
+    # Holds at the stalled speeds (every one of them clipped) beside the drawn ones.
+    stalls = {velocity_for(f, schedule.microsteps) for f in stalled_hz}
+    holds = [*schedule.holds, *(replace(schedule.holds[1], velocity=v) for v in stalls)]
+    full = 16 * STANDARD_GRAVITY
+    peaks = [full if abs(h.velocity) in stalls else 1.0 for h in holds]
+    assert _ceiling(replace(schedule, holds=tuple(holds)), peaks, below_hz) == ceiling
