@@ -13,14 +13,17 @@ Reading is the same in reverse: python-can's ``BLFReader`` makes a message per f
 2.4 s of every diagnosis of a simulated characterization. A file whose every object is
 a plain CAN_MESSAGE in compressed or stored containers (what python-can and this
 station write) is read as arrays here, giving what that reader would give, down to the
-timestamps' bits; any other file is left to it (``read_can_frames`` says None).
+timestamps' bits; any other file is left to it (``NotPlainCan``). A container at a time:
+read whole, a ten-minute log's analysis peaked at 562 MB against its 400 MB target (333
+MB frame by frame, 337 MB now).
 """
 
 from __future__ import annotations
 
 import struct
 import zlib
-from dataclasses import dataclass
+from collections.abc import Iterator
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -114,56 +117,83 @@ class CanFrames:
     data: NDArray[np.uint8]  # (K, 8); bytes beyond the length are zero
 
 
+class NotPlainCan(Exception):
+    """The file is not (only) plain CAN messages in containers: read it another way."""
+
+
+def can_frame_chunks(path: Path) -> Iterator[CanFrames]:
+    """The frames of the BLF file at ``path``, a container's worth at a time (so that a
+    ten-minute log is never held whole), while every object is a plain CAN message.
+    Raises ``NotPlainCan`` on the first header, container or object of any other kind,
+    a container that does not decompress, or a cut object: what was given before it
+    must then be dropped."""
+    with path.open("rb") as log:
+        head = log.read(_FILE_HEADER.size)
+        if len(head) < _FILE_HEADER.size:
+            raise NotPlainCan("no BLF file header")
+        header = _FILE_HEADER.unpack(head)
+        if header[0] != b"LOGG":
+            raise NotPlainCan("no BLF signature")
+        start = systemtime_to_timestamp(header[14:22])
+        log.seek(header[1])
+        tail = b""
+        while base := log.read(_CONTAINER_HEADER.size):
+            if len(base) < _CONTAINER_HEADER.size:
+                raise NotPlainCan("a cut object header")
+            signature, _, _, size, kind, method, _ = _CONTAINER_HEADER.unpack(base)
+            if signature != b"LOBJ" or kind != _LOG_CONTAINER or size < len(base):
+                raise NotPlainCan("an object that is not a log container")
+            body = log.read(size - len(base))
+            log.read(size % 4)
+            stream = tail + _unpacked(method, body)
+            whole = len(stream) - len(stream) % _OBJECT.itemsize
+            tail = stream[whole:]
+            yield _plain(np.frombuffer(stream, dtype=_OBJECT, count=whole // _OBJECT.itemsize),
+                         start)
+        if tail:
+            raise NotPlainCan("a cut object at the end")
+
+
 def read_can_frames(path: Path) -> CanFrames | None:
-    """The frames of the BLF file at ``path`` when it holds nothing but plain CAN
-    messages in containers, else None (a header, container or object of any other
-    kind, a container that does not decompress, or a cut object)."""
-    raw = path.read_bytes()
-    if len(raw) < _FILE_HEADER.size:
+    """Every frame of ``can_frame_chunks`` at once, or None when the file is not plain."""
+    try:
+        chunks = list(can_frame_chunks(path))
+    except NotPlainCan:
         return None
-    header = _FILE_HEADER.unpack_from(raw)
-    if header[0] != b"LOGG":
-        return None
-    start = systemtime_to_timestamp(header[14:22])
-    parts: list[bytes] = []
-    at = header[1]
-    while at < len(raw):
-        if len(raw) - at < _CONTAINER_HEADER.size:
-            return None
-        signature, _, _, size, kind, method, _ = _CONTAINER_HEADER.unpack_from(raw, at)
-        if signature != b"LOBJ" or kind != _LOG_CONTAINER or size < _CONTAINER_HEADER.size:
-            return None
-        body = raw[at + _CONTAINER_HEADER.size:at + size]
-        if method == _ZLIB_DEFLATE:
-            try:
-                parts.append(zlib.decompressobj().decompress(body))
-            except zlib.error:
-                return None
-        elif method == _NO_COMPRESSION:
-            parts.append(body)
-        else:
-            return None
-        at += size + size % 4
-    stream = b"".join(parts)
-    if len(stream) % _OBJECT.itemsize:
-        return None
-    objects = np.frombuffer(stream, dtype=_OBJECT)
+    return CanFrames(*(np.concatenate([getattr(c, f.name) for c in chunks])
+                       if chunks else getattr(_plain(np.zeros(0, _OBJECT), 0.0), f.name)
+                       for f in fields(CanFrames)))
+
+
+def _unpacked(method: int, body: bytes) -> bytes:
+    if method == _NO_COMPRESSION:
+        return body
+    if method != _ZLIB_DEFLATE:
+        raise NotPlainCan(f"compression method {method}")
+    try:
+        return zlib.decompressobj().decompress(body)
+    except zlib.error as exc:
+        raise NotPlainCan(str(exc)) from None
+
+
+def _plain(objects: NDArray[np.void], start: float) -> CanFrames:
+    """The frames of ``objects`` as python-can's reader gives them."""
     if not (np.all(objects["signature"] == b"LOBJ") and np.all(objects["header_size"] == _HEADERS)
             and np.all(objects["header_version"] == 1)
             and np.all(objects["object_size"] == _OBJECT.itemsize)
             and np.all(objects["object_type"] == _CAN_MESSAGE)):
-        return None
+        raise NotPlainCan("an object that is not a plain CAN message")
     # The reader's own arithmetic: ticks times an exact decimal factor, rounded once,
     # plus the start; a division by the exact power of ten rounds the same.
     ticks = objects["time_ns"].astype(np.float64)
-    unit = np.where(objects["time_flags"] == _TIME_TEN_MICS, 1e5, 1e9)
+    ticks /= np.where(objects["time_flags"] == _TIME_TEN_MICS, 1e5, 1e9)
     remote = (objects["flags"] & _REMOTE) != 0
     # A remote frame carries no data, whatever its DLC says (python-can's Message).
     lengths = np.where(remote, 0, np.minimum(objects["dlc"], 8)).astype(np.uint8)
     data = np.where(np.arange(8)[None, :] < lengths[:, None], objects["data"], 0)
     can_id = objects["can_id"]
     return CanFrames(
-        timestamps=ticks / unit + start,
+        timestamps=ticks + start,
         arbitration_ids=(can_id & 0x1FFFFFFF).astype(np.uint32),
         extended=(can_id & _EXTENDED) != 0,
         remote=remote,

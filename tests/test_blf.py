@@ -127,11 +127,14 @@ def test_a_log_holding_any_other_object_is_left_to_python_can(tmp_path: Path) ->
     fd = _mixed(50)
     fd.insert(20, can.Message(timestamp=fd[19].timestamp, is_fd=True, data=bytes(12)))
     _python_can_log(tmp_path / "fd.blf", fd)
+    late = _mixed(6_000)  # plain for two containers first: what was read is dropped
+    late.append(can.Message(timestamp=late[-1].timestamp, is_error_frame=True))
+    _python_can_log(tmp_path / "late.blf", late)
     _python_can_log(tmp_path / "whole.blf", _mixed(3_000))
     whole = (tmp_path / "whole.blf").read_bytes()
     (tmp_path / "cut.blf").write_bytes(whole[:len(whole) // 2])
     (tmp_path / "not.blf").write_bytes(b"date Tue Dec 1 2026\n" * 20)
-    for name in ("error", "fd", "cut", "not"):
+    for name in ("error", "fd", "late", "cut", "not"):
         assert read_can_frames(tmp_path / f"{name}.blf") is None, name
 
 
@@ -153,7 +156,7 @@ def test_a_recording_read_as_arrays_is_the_recording_python_can_reads(tmp_path: 
     assert frames is not None
     with can.BLFReader(str(path)) as reader:
         one_by_one = reader_module._scan(path, reader, metadata)
-    at_once = reader_module._scan_arrays(frames, metadata)
+    at_once = reader_module._scan_chunks([frames], metadata)
     assert at_once.frames_malformed > 0 and at_once.frames_ignored > 0
     for field in ("frames_total", "frames_ignored", "frames_malformed"):
         assert getattr(at_once, field) == getattr(one_by_one, field), field

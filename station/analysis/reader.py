@@ -14,7 +14,7 @@ from __future__ import annotations
 import gc
 import sys
 from array import array
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,7 +37,7 @@ from station.analysis.timeline import (
     build_timeline,
     icd_frames,
 )
-from station.blf import CanFrames, read_can_frames
+from station.blf import CanFrames, NotPlainCan, can_frame_chunks
 from station.errors import RecordingError
 from station.recording import (
     FRAMES_RECORDED_KEY,
@@ -108,9 +108,9 @@ def read_log_frames(
     reader = _open_reader(log_path, log_format)
     with reader:
         _check_complete_before(log_path, log_format, reader)
-        at_once = read_can_frames(log_path) if log_format is LogFormat.BLF else None
-        scan = (_scan(log_path, reader, metadata) if at_once is None
-                else _scan_arrays(at_once, metadata))
+        scan = _scan_blf(log_path, metadata) if log_format is LogFormat.BLF else None
+        if scan is None:
+            scan = _scan(log_path, reader, metadata)
     if expected is not None and scan.frames_total < expected:
         raise RecordingError(
             f"{log_path}: the log is truncated: it holds {scan.frames_total} frames, "
@@ -276,19 +276,40 @@ def _scan(
                           total, malformed)
 
 
-def _scan_arrays(frames: CanFrames, metadata: RecordingMetadata) -> LogFrames:
-    """``_scan`` of a log read as arrays (``station.blf.read_can_frames``)."""
-    count = frames.timestamps.size
-    kinds = np.full(count, len(FrameKind), dtype=np.uint8)  # not an ICD frame
-    sizes = np.zeros(count, dtype=np.uint8)
-    for cob_id, (kind, size) in icd_frames(metadata.drive_node, metadata.sensor_node).items():
-        ours = frames.arbitration_ids == cob_id
-        kinds[ours], sizes[ours] = kind, size
-    icd = (kinds < len(FrameKind)) & ~frames.extended & ~frames.remote
-    kept = icd & (frames.lengths == sizes)
-    # A SYNC's one byte stays in column 0, the rest zero, as ``_scan`` lays it out.
-    return _in_time_order(kinds[kept], frames.data[kept], frames.timestamps[kept], count,
-                          int(np.count_nonzero(icd & ~kept)))
+def _scan_blf(log_path: Path, metadata: RecordingMetadata) -> LogFrames | None:
+    """A BLF log of plain CAN messages read as arrays; None for any other, which
+    python-can's reader reads its own way (``_scan``)."""
+    try:
+        return _scan_chunks(can_frame_chunks(log_path), metadata)
+    except NotPlainCan:
+        return None
+
+
+def _scan_chunks(chunks: Iterable[CanFrames], metadata: RecordingMetadata) -> LogFrames:
+    """``_scan`` of a log read as arrays a container at a time (``station.blf``), only
+    the ICD frames of each kept, as the frame loop keeps them."""
+    wanted = icd_frames(metadata.drive_node, metadata.sensor_node)
+    kinds, payloads, stamps = [], [], []
+    total = malformed = 0
+    for frames in chunks:
+        count = frames.timestamps.size
+        kind = np.full(count, len(FrameKind), dtype=np.uint8)  # not an ICD frame
+        size = np.zeros(count, dtype=np.uint8)
+        for cob_id, (frame_kind, length) in wanted.items():
+            ours = frames.arbitration_ids == cob_id
+            kind[ours], size[ours] = frame_kind, length
+        icd = (kind < len(FrameKind)) & ~frames.extended & ~frames.remote
+        kept = icd & (frames.lengths == size)
+        # A SYNC's one byte stays in column 0, the rest zero, as ``_scan`` lays it out.
+        kinds.append(kind[kept])
+        payloads.append(frames.data[kept])
+        stamps.append(frames.timestamps[kept])
+        total += count
+        malformed += int(np.count_nonzero(icd & ~kept))
+    return _in_time_order(
+        np.concatenate(kinds) if kinds else np.zeros(0, np.uint8),
+        np.concatenate(payloads) if payloads else np.zeros((0, PAYLOAD_BYTES), np.uint8),
+        np.concatenate(stamps) if stamps else np.zeros(0), total, malformed)
 
 
 def _in_time_order(kind_array: NDArray[np.uint8], payloads: NDArray[np.uint8],
