@@ -122,19 +122,25 @@ def test_a_stalled_speed_is_dropped_only_while_two_speeds_remain(
     assert peak == (1.0 if kept == 2 else max(peaks))
 
 
+def _running_hz(seed: int) -> set[float]:
+    """The electrical speeds at which a detent+flux trial's planned unit runs without
+    clipping the widest range (the plan's schedule probed at 16 g)."""
+    cls = TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS}))
+    plan = plan_trial(Case(cls, seed))
+    probe = replace(plan.schedule, sensor_range_g=max(SENSOR_RANGES_G))
+    run = simulate_timeline(plan.unit, probe, seed=plan.case.seed)
+    clipped = 0.99 * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
+    return {abs(h.velocity) / (4 * probe.microsteps)
+            for h, peak in zip(probe.holds, _steady_peaks(run, probe), strict=True)
+            if h.velocity and peak < clipped}
+
+
 def test_a_unit_that_runs_at_one_drawn_speed_only_is_characterized_at_others() -> None:
     """Benchmark, session 25 (detent_torque+flux_harmonics@1456061531, a disk): of its two
     drawn speeds the unit stalled at 37.5 Hz, and the recording, left with one speed, was
     refused. The trial draws another characterization, one the unit runs at two speeds
     of."""
-    cls = TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS}))
-    plan = plan_trial(Case(cls, 1456061531))
-    probe = replace(plan.schedule, sensor_range_g=max(SENSOR_RANGES_G))
-    run = simulate_timeline(plan.unit, probe, seed=plan.case.seed)
-    clipped = 0.99 * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
-    running = {abs(h.velocity) for h, peak in zip(probe.holds, _steady_peaks(run, probe),
-                                                  strict=True) if h.velocity and peak < clipped}
-    assert len(running) >= 2
+    assert len(_running_hz(1456061531)) >= 2
 
 
 def test_a_unit_that_stalls_above_a_speed_is_characterized_again_below_it() -> None:
@@ -142,15 +148,9 @@ def test_a_unit_that_stalls_above_a_speed_is_characterized_again_below_it() -> N
     below about 10 Hz electrical): ten characterizations drawn over the whole 5-40 Hz all
     stalled, and the last one's recording was refused. Each new draw now stays below the
     slowest speed the unit fell out of step at so far, as the engineer would write it."""
-    cls = TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS}))
-    plan = plan_trial(Case(cls, 1730680244))
-    probe = replace(plan.schedule, sensor_range_g=max(SENSOR_RANGES_G))
-    run = simulate_timeline(plan.unit, probe, seed=plan.case.seed)
-    clipped = 0.99 * max(SENSOR_RANGES_G) * STANDARD_GRAVITY
-    running = {abs(h.velocity) for h, peak in zip(probe.holds, _steady_peaks(run, probe),
-                                                  strict=True) if h.velocity and peak < clipped}
+    running = _running_hz(1730680244)
     assert len(running) >= 2
-    assert max(running) / (4 * probe.microsteps) < 13.5  # the first draw's slowest stall
+    assert max(running) < 13.5  # the first draw's slowest stall
 
 
 @pytest.mark.parametrize(("stalled_hz", "below_hz", "ceiling"), [
