@@ -23,7 +23,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,6 @@ from numpy.typing import NDArray
 _FILE_HEADER = struct.Struct("<4sLBBBBBBBBQQLL8H8H")
 _FILE_HEADER_SIZE = 144
 _CONTAINER_HEADER = struct.Struct("<4sHHLLH6xL4x")  # object header, then container's
-_OBJECT_BASE = struct.Struct("<4sHHLL")
 _CONTAINER_BASE_SIZE = 16  # the object header alone, which a container's size field counts
 _CONTAINER_SIZE = 128 * 1024  # uncompressed bytes per container, as python-can cuts them
 _APPLICATION_ID = 5  # python-can's; a reader keys nothing on it
@@ -152,17 +151,6 @@ def can_frame_chunks(path: Path) -> Iterator[CanFrames]:
                          start)
         if tail:
             raise NotPlainCan("a cut object at the end")
-
-
-def read_can_frames(path: Path) -> CanFrames | None:
-    """Every frame of ``can_frame_chunks`` at once, or None when the file is not plain."""
-    try:
-        chunks = list(can_frame_chunks(path))
-    except NotPlainCan:
-        return None
-    return CanFrames(*(np.concatenate([getattr(c, f.name) for c in chunks])
-                       if chunks else getattr(_plain(np.zeros(0, _OBJECT), 0.0), f.name)
-                       for f in fields(CanFrames)))
 
 
 def _unpacked(method: int, body: bytes) -> bytes:

@@ -3,6 +3,7 @@ recording that frames given one by one make: same bytes, same losses."""
 
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
 
 import can
@@ -11,7 +12,7 @@ import pytest
 from numpy.typing import NDArray
 
 from station.analysis import reader as reader_module
-from station.blf import read_can_frames
+from station.blf import CanFrames, NotPlainCan, can_frame_chunks
 from station.errors import RecordingError
 from station.recording import RecordingWriter
 from tests.metadata import icd_metadata
@@ -80,6 +81,16 @@ def test_frames_at_once_are_refused_after_a_frame_by_frame(tmp_path: Path) -> No
         with pytest.raises(RecordingError, match="empty recording"):
             rec.write_frames(stamps, cob_ids, lengths, payloads)
     assert list(tmp_path.iterdir()) == []
+
+
+def read_can_frames(path: Path) -> CanFrames | None:
+    """Every frame of a plain log at once, None for any other."""
+    try:
+        chunks = list(can_frame_chunks(path))
+    except NotPlainCan:
+        return None
+    return CanFrames(*(np.concatenate([getattr(c, f.name) for c in chunks])
+                       for f in fields(CanFrames)))
 
 
 def _python_can_log(path: Path, messages: list[can.Message], level: int = -1) -> None:

@@ -1429,10 +1429,8 @@ class Search:
         if pairs:
             done = self._run(_refit_job, [s.fit for s, _ in pairs],
                              [large.fit for _, large in pairs])
-            for (smaller, _), better in zip(pairs, done, strict=True):
-                key = (smaller.effects, smaller.spec.sensor_bend)
-                if better is not None and better.fit.chi2 < self.latest(smaller).fit.chi2:
-                    self.cache[key] = better
+            for better in done:
+                self._keep(better)
         return [compare(self.latest(t.smaller), t.larger) for t in tests]
 
     def finished(self, candidates: list[Candidate]) -> list[Candidate]:
@@ -1447,11 +1445,15 @@ class Search:
         """
         todo = [c for c in candidates if not c.fit.converged]
         if todo:
-            done = self._run(_finish_job, [c.fit for c in todo])
-            for candidate, better in zip(todo, done, strict=True):
-                if better is not None and better.fit.chi2 < self.latest(candidate).fit.chi2:
-                    self.cache[(candidate.effects, candidate.spec.sensor_bend)] = better
+            for better in self._run(_finish_job, [c.fit for c in todo]):
+                self._keep(better)
         return [self.latest(c) for c in candidates]
+
+    def _keep(self, better: Candidate | None) -> None:
+        """``better`` (a model fitted again) in place of the search's fit of the same
+        model, when it fits better."""
+        if better is not None and better.fit.chi2 < self.latest(better).fit.chi2:
+            self.cache[(better.effects, better.spec.sensor_bend)] = better
 
     def latest(self, candidate: Candidate) -> Candidate:
         """``candidate``'s model as the search now has it fitted (``refined`` may have
@@ -1510,10 +1512,8 @@ def _beam(search: Search, progress: Callable[[str], None] | None
         rounds.append(Round(size, tuple(tried.values()), chosen))
         if chosen is None:
             break
-        if size == MAX_EFFECTS:
-            current = chosen
-            break
-        frontier = search.finished([t.larger for t in winners[:BEAM]])
+        if size < MAX_EFFECTS:  # the last size grows nothing from its models
+            frontier = search.finished([t.larger for t in winners[:BEAM]])
         current = search.latest(chosen)
     return current, rounds, tuple(dict.fromkeys((*candidates, *current.effects)))
 
