@@ -128,8 +128,9 @@ GRID_SHARED = frozenset({Effect.FLUX_HARMONICS, Effect.CURRENT_DISTORTION, Effec
                          Effect.ROTOR_ECCENTRICITY})
 """Groups whose chain-grid first passes, when each is tried alone on a bent nominal, are
 made from one model holding them all (``fit.first_passes_shared``): every block of theirs
-is linear and starts at zero, so at a grid point they leave the nominal's motion as it
-is and only add rows to its linear design. The others (a coupling, a clock, a current
+starts at zero, where it leaves the nominal's motion as it is (the only nonlinear one, an
+eccentric rotor's unbalance, moves it only away from zero), so at a grid point they only
+add rows to its linear design. The others (a coupling, a clock, a current
 loop's lag, friction's smoothing) start where the motion differs."""
 REWEIGHT_CHANGE = math.log(1.3)
 """Weights that moved by more than 30 % (at the 99th percentile) call for a second pass."""
@@ -1246,7 +1247,8 @@ def wrong_angle_chi2(obs: Observations, result: Fit) -> float:
     best = math.inf
     for turns in WRONG_TURNS:
         model = Model(result.model.spec, obs.turning(turns))
-        start = model.with_values(result.params, {"eccentricity": [0.0, 0.0]})
+        start = model.with_values(result.params, {"eccentricity": [0.0, 0.0],
+                                                  "unbalance": [0.0, 0.0]})
         best = min(best, polish(model, start).chi2)
     return best
 

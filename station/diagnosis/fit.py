@@ -305,12 +305,13 @@ def first_passes_shared(union: Model, models: list[Model], starts: list[NDArray[
     where ``split`` says), each with the χ² that pass predicted, from one linear design
     per start.
 
-    ``union`` must hold every block of every model, its groups' blocks all linear and
-    zero at the starts: there each model's motion is the union's, and so is each linear
-    parameter's design row. Made with each group's own model, a belt's chain-grid first
-    passes for every group tried alone on a bent nominal were a fifth of its diagnosis
-    (development flux_harmonics@202, profiled): the same motions made again for each
-    group (and for both rankings of the nominal's own grid).
+    ``union`` must hold every block of every model, its groups' blocks zero at the starts
+    and there leaving the motion as it is: each model's motion is then the union's, and so
+    is each linear parameter's design row (the first pass moves no nonlinear one). Made
+    with each group's own model, a belt's chain-grid first passes for every group tried
+    alone on a bent nominal were a fifth of its diagnosis (development
+    flux_harmonics@202, profiled): the same motions made again for each group (and for
+    both rankings of the nominal's own grid).
     """
     inside_low, inside_high = _inside(union)
     clipped = [np.clip(start, inside_low, inside_high) for start in starts]

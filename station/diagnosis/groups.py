@@ -498,9 +498,21 @@ def _saturation(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
 def _eccentricity(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
     sl = fit.model.layout.slices["eccentricity"]
     pair = _pair(fit.params[sl], sig[sl], 100.0)
-    return {"torque_modulation_percent": pair["magnitude"], "sigma_percent": pair["sigma"],
-            "phase_rad": pair["phase_rad"],
-            "note": "once per mechanical revolution of the rotor, on the magnet's torque"}
+    out = {"torque_modulation_percent": pair["magnitude"], "sigma_percent": pair["sigma"],
+           "phase_rad": pair["phase_rad"],
+           "note": "once per mechanical revolution of the rotor, on the magnet's torque"}
+    if fit.model.layout.has("unbalance"):
+        sl = fit.model.layout.slices["unbalance"]
+        # (U·cos φ, U·sin φ) of the load U·sin(θ + φ): φ is the pair's own phase.
+        load = _pair(fit.params[sl], sig[sl], 100.0)
+        out.update({
+            "unbalance_load_percent": load["magnitude"],
+            "unbalance_sigma_percent": load["sigma"],
+            "unbalance_phase_rad": load["phase_rad"],
+            "unbalance_note": ("load U·sin(θ + φ) on the rotor, θ its mechanical angle, U in "
+                               "percent of the holding torque at the largest current"),
+        })
+    return out
 
 
 GROUP_PARAMETERS: dict[Effect, Callable[[Fit, NDArray[np.float64]], dict[str, Any]]] = {

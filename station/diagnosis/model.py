@@ -419,8 +419,16 @@ def saturation_slopes(u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
     return 2.0 - 2.0 * u2, 2.0 * u2
 
 
+UNBALANCE_MAX = 0.3
+"""The once-per-revolution load's bound, a fraction of the holding torque at the largest
+current: a third of what holds the rotor is no unbalance a unit would be shipped with."""
+
+
 def _blocks_eccentricity(spec: ModelSpec, obs: Observations) -> list[Block]:
-    return [Block("eccentricity", 2, 0.0, -0.3, 0.3, BlockKind.LINEAR)]
+    # The airgap's modulation of the motor's torque, and the load the off-centre mass
+    # puts on the rotor: CLI.md's "torque or load periodic once per mechanical revolution".
+    return [Block("eccentricity", 2, 0.0, -0.3, 0.3, BlockKind.LINEAR),
+            Block("unbalance", 2, 0.0, -UNBALANCE_MAX, UNBALANCE_MAX, rejects=(-1, 1))]
 
 
 GROUP_BLOCKS: dict[Effect, GroupBlocks] = {
@@ -558,6 +566,7 @@ class _Inputs:
     i_a: NDArray[np.float64]
     i_b: NDArray[np.float64]
     modulation: NDArray[np.float64]
+    unbalance: NDArray[np.float64]  # the once-per-revolution load per segment (S,)
 
 
 @dataclass(frozen=True)
@@ -1029,6 +1038,32 @@ class Model:
         out: NDArray[np.float64] = (1.0 + e[0] * m.real - e[1] * m.imag)[:, None]
         return out
 
+    def unbalance(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The off-centre rotor's load, U·sin(θ + φ) averaged over each segment's
+        mechanical angles (Kt units, (S,)), with U·cos φ and U·sin φ as fractions of the
+        holding torque at the largest current.
+
+        Within one electrical period it is a constant load: it moves the rotor along its
+        magnetic spring, and with it every harmonic's phase (order times the slip), from
+        one trim step to the next as the rotor turns through its revolution."""
+        if not self.layout.has("unbalance"):
+            return np.zeros(self.obs.count)
+        u = self._p(p, "unbalance") * self.largest_A
+        m = self.obs.mechanical
+        out: NDArray[np.float64] = u[0] * m.imag + u[1] * m.real
+        return out
+
+    def condition_mean(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The mean of ``v`` (…, S) over each segment's condition, at each segment."""
+        cond = self.obs.condition
+        conditions = len(self.obs.conditions)
+        count = np.maximum(np.bincount(cond, minlength=conditions), 1)
+        rows = np.atleast_2d(v)
+        means = np.stack([np.bincount(cond, weights=r, minlength=conditions) / count
+                          for r in rows])[:, cond]
+        out: NDArray[np.float64] = means.reshape(np.shape(v))
+        return out
+
     def saturation(self, p: NDArray[np.float64], i_a: NDArray[np.float64],
                    i_b: NDArray[np.float64]) -> NDArray[np.float64] | float:
         """Kt relative to its low-current value at the instantaneous current magnitude."""
@@ -1253,21 +1288,24 @@ class Model:
                                        if chain is None else chain)
         force, slope, mean_force = self._friction.get(
             p, lambda: self.friction_torque(p))
-        taken = drag
+        unbalance = self.unbalance(p)
+        taken = drag + unbalance
         if self.layout.has("friction_coulomb"):
             taken = taken + self.gear_ratio * mean_force
         swing_above = None if above is None or theta_above is None else theta_above * above
         i_a, i_b = self.currents(p)
         return _Inputs(sensor, alpha, transfer, swing_above, force, slope, taken,
                        self._p(p, "load_angle_rad")[self.obs.condition], i_a, i_b,
-                       self.modulation(p))
+                       self.modulation(p), unbalance)
 
     def trim_lag(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
         """How far each segment's rotor sits from its condition's load angle (electrical
         rad, (S,)): a trim step changes the mean torque the currents make on the swinging
         rotor (offsets and gain errors beating with the swing at orders 1 and 2), and the
         rotor slips along its magnetic spring until the mean torque again equals what the
-        chain takes at that speed, the same for every segment of the condition.
+        chain takes at that speed, the same for every segment of the condition but for an
+        off-centre rotor's load (``unbalance``), which changes with each segment's
+        mechanical angle.
 
         Near a mode that torque is several percent of the holding torque and moves with
         every step (a belt at 390 mA beside its 23 Hz mode: the condition's spread of it was
@@ -1278,14 +1316,14 @@ class Model:
         """
         made = self.torque(p, m).mean(axis=1)
         stiff = self.torque_slope(p, m).mean(axis=1)
-        conditions = len(self.obs.conditions)
-        count = np.bincount(self.obs.condition, minlength=conditions)
-        level = (np.bincount(self.obs.condition, weights=made, minlength=conditions)
-                 / np.maximum(count, 1))
+        level = self.condition_mean(made)
         # The slope is −I·cos ρ (a restoring spring): the lag that brings each segment's
         # torque to its condition's level, capped where the spring is too soft to say.
         safe = np.where(np.abs(stiff) > TRIM_LAG_SOFTEST * self.amp[:, 0], stiff, np.inf)
-        shift = (level[self.obs.condition] - made) / safe
+        if self.layout.has("unbalance"):
+            load = self.unbalance(p)
+            level = level + load - self.condition_mean(load)
+        shift = (level - made) / safe
         out: NDArray[np.float64] = np.clip(shift, -TRIM_LAG_MAX, TRIM_LAG_MAX)
         return out
 
@@ -1619,11 +1657,7 @@ class Model:
         """How far each segment's slip (``trim_lag``: (level − made)/spring on the motion
         before it, where it acts) moves, (P, S), for changes of the torque made and of the
         spring there, (P, S) each."""
-        cond = self.obs.condition
-        conditions = len(self.obs.conditions)
-        count = np.maximum(np.bincount(cond, minlength=conditions), 1)
-        d_level = np.stack([np.bincount(cond, weights=row, minlength=conditions) / count
-                            for row in d_made1])[:, cond]
+        d_level = self.condition_mean(d_made1)
         safe = np.where(lin.acts, lin.spring1, np.inf)
         out: NDArray[np.float64] = (d_level - d_made1 - lin.motion.lag * d_spring1) / safe
         return out
@@ -1682,6 +1716,11 @@ class Model:
         d_te1 = nr * d_ripple - d(lambda x: x.rho)[:, :, None]
         d_lag = self._slip_change(lin, (lin.slope1 * d_te1).mean(axis=2),
                                   (lin.bend1 * d_te1).mean(axis=2))
+        if self.layout.has("unbalance"):
+            # The load moves the level each segment's slip brings it to (``trim_lag``).
+            safe = np.where(lin.acts, lin.spring1, np.inf)
+            d_load = d(lambda x: x.unbalance)
+            d_lag = d_lag + (d_load - self.condition_mean(d_load)) / safe
         d_te = d_te1 + d_lag[:, :, None]
         d_made = lin.slope * d_te
         # The chain's response and need to the step's acceleration (``rotor_response``).

@@ -167,8 +167,10 @@ def test_a_weak_partner_is_kept_when_what_is_left_is_the_strong_effects_own_erro
     nominal χ², and with both fitted 655 was left over the noise on 511 held-out values,
     at orders 4-7 beside the flux's own, where the eccentricity gained 481. Counted as
     physics without an id, that remainder dropped the eccentricity; it is a tenth of a
-    permille of what the flux took, well within what a group's own errors may leave. The
-    remainder is still reported."""
+    permille of what the flux took, well within what a group's own errors may leave.
+    Most of it was the eccentric rotor's unbalance (0.2 % of the holding torque), which
+    the group did not carry then: with it the eccentricity gains 993 and leaves 314 for
+    443 held-out values, the noise's share."""
     monkeypatch.setenv(HOME_ENV, str(tmp_path / "home"))
     # The schedule as that run drew it: redrawn over the whole speed range (since session
     # 50 a redraw stays below the speeds the unit stalled at, and this unit's other
@@ -181,7 +183,8 @@ def test_a_weak_partner_is_kept_when_what_is_left_is_the_strong_effects_own_erro
     out = record_trial(plan, tmp_path / "unit.blf", tmp_path / "truth" / "unit.json")
     doc = diagnose_recording(out, write_report=False, workers=2).as_dict()
     assert {e for e, _ in named(doc)} == {"flux_harmonics", "rotor_eccentricity"}, doc["effects"]
-    assert doc["unexplained"]["significant"]
+    left = doc["unexplained"]
+    assert not left["significant"] and left["held_out_chi2"] < left["values"], left
 
 
 @pytest.mark.parametrize(("effects", "refused", "excess"), [
