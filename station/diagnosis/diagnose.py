@@ -1294,14 +1294,10 @@ def coupling_as_belt(model: Model, larger: Fit) -> NDArray[np.float64] | None:
     kept as they act on the lighter rotor. A second mode beside a belt the data resolve
     loses that belt's own mode this way and stays significant.
     """
-    if (model.spec.chain is not ChainKind.BELT
-            or Effect.LOAD_RESONANCE in model.spec.effects
-            or Effect.LOAD_RESONANCE not in larger.model.spec.effects):
+    if not moves_into_belt(model.spec, larger):
         return None
     frac = float(larger.value("coupling_fraction")[0])
     rest = 1.0 - frac
-    if not 0.0 < rest < 1.0:
-        return None
     # The rotor keeps its own inertia only: its frequency on the field's spring rises, and
     # the damping ratio of the same drag with it.
     values = {
@@ -1315,6 +1311,16 @@ def coupling_as_belt(model: Model, larger: Fit) -> NDArray[np.float64] | None:
             "load_damping_ratio"]][0])],
     }
     return model.with_values(_transplant(model, larger), values)
+
+
+def moves_into_belt(smaller: ModelSpec, larger: Fit) -> bool:
+    """Whether ``larger``'s coupling can be moved into the belt ``smaller`` declares
+    (``coupling_as_belt``): a belt without a coupling of its own, beside a coupling with
+    inertia on both sides of it."""
+    if (smaller.chain is not ChainKind.BELT or Effect.LOAD_RESONANCE in smaller.effects
+            or Effect.LOAD_RESONANCE not in larger.model.spec.effects):
+        return False
+    return 0.0 < float(larger.value("coupling_fraction")[0]) < 1.0
 
 
 class Search:
@@ -1437,8 +1443,7 @@ class Search:
         """
         tests = list(tests)
         pairs = [(t.smaller, t.larger) for t in tests if t.significant and (
-            t.smaller.effects or coupling_as_belt(Model(t.smaller.spec, self.obs),
-                                                  t.larger.fit) is not None)]
+            t.smaller.effects or moves_into_belt(t.smaller.spec, t.larger.fit))]
         if pairs:
             done = self._run(_refit_job, [s.fit for s, _ in pairs],
                              [large.fit for _, large in pairs])

@@ -1653,11 +1653,15 @@ class Model:
         return _Linearised(m, first, slope, bend, slope1, bend1, acts, step, alpha, swing)
 
     def _slip_change(self, lin: _Linearised, d_made1: NDArray[np.float64],
-                     d_spring1: NDArray[np.float64]) -> NDArray[np.float64]:
+                     d_spring1: NDArray[np.float64],
+                     d_load: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
         """How far each segment's slip (``trim_lag``: (level − made)/spring on the motion
         before it, where it acts) moves, (P, S), for changes of the torque made and of the
-        spring there, (P, S) each."""
+        spring there, and of an off-centre rotor's load (which moves the level), (P, S)
+        each."""
         d_level = self.condition_mean(d_made1)
+        if d_load is not None:
+            d_level = d_level + d_load - self.condition_mean(d_load)
         safe = np.where(lin.acts, lin.spring1, np.inf)
         out: NDArray[np.float64] = (d_level - d_made1 - lin.motion.lag * d_spring1) / safe
         return out
@@ -1715,12 +1719,9 @@ class Model:
         nr = self.rotor_teeth
         d_te1 = nr * d_ripple - d(lambda x: x.rho)[:, :, None]
         d_lag = self._slip_change(lin, (lin.slope1 * d_te1).mean(axis=2),
-                                  (lin.bend1 * d_te1).mean(axis=2))
-        if self.layout.has("unbalance"):
-            # The load moves the level each segment's slip brings it to (``trim_lag``).
-            safe = np.where(lin.acts, lin.spring1, np.inf)
-            d_load = d(lambda x: x.unbalance)
-            d_lag = d_lag + (d_load - self.condition_mean(d_load)) / safe
+                                  (lin.bend1 * d_te1).mean(axis=2),
+                                  d(lambda x: x.unbalance) if self.layout.has("unbalance")
+                                  else None)
         d_te = d_te1 + d_lag[:, :, None]
         d_made = lin.slope * d_te
         # The chain's response and need to the step's acceleration (``rotor_response``).
