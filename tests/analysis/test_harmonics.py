@@ -15,6 +15,7 @@ from station.analysis.harmonics import (
     SampleClock,
     SteadyProjection,
     demodulate,
+    slow_variance,
 )
 
 SPP = 50.0  # samples per electrical period: 20 Hz at a 1 ms SYNC
@@ -343,3 +344,40 @@ def test_a_segment_too_short_for_every_order_finds_its_noise_with_the_orders_it_
     h = demodulate(_signal(angle, CONTENT) + noise, angle, spp, white_noise=True)
     assert math.isfinite(h.noise_variance)
     assert h.noise_variance == pytest.approx(sigma**2, rel=0.3)
+
+
+def _turning(angle: NDArray[np.float64], depth: float) -> NDArray[np.float64]:
+    """``CONTENT`` modulated once per mechanical revolution (50 electrical periods), as an
+    eccentric airgap turns with the rotor: the hold sees a quarter of a revolution."""
+    periods = np.unwrap(angle) / (2 * math.pi)
+    return DC + (1.0 + depth * np.sin(2 * math.pi * periods / 50.0 + 0.3)) * (
+        _signal(angle, CONTENT) - DC)
+
+
+def test_harmonics_turning_slowly_through_a_hold_leave_only_the_noise() -> None:
+    rng = np.random.default_rng(5)
+    angle = _angle(round(12.5 * SPP))
+    sigma = 0.002
+    signal = _turning(angle, 0.3) + rng.normal(0.0, sigma, angle.size)
+    held = demodulate(signal, angle, SPP, white_noise=True)
+    assert held.noise_variance > 30 * sigma**2  # what a hold's mean harmonics leave
+    assert slow_variance(signal, angle, SPP, DEFAULT_ORDERS) < 1.5 * sigma**2
+
+
+def test_motion_that_is_not_periodic_is_left_when_harmonics_may_change_slowly() -> None:
+    rng = np.random.default_rng(6)
+    angle = _angle(round(3 * SPP))
+    sigma = 0.002
+    # A rotor nearly out of step wanders: a swing with no period, a tenth of the ripple's
+    # size, its spectrum spread over the orders (one tone close to an order would be that
+    # order turning through a short hold).
+    swing = lfilter([0.3], [1.0, -0.7], rng.normal(0.0, 0.1, angle.size))
+    signal = _signal(angle, CONTENT) + swing + rng.normal(0.0, sigma, angle.size)
+    assert slow_variance(signal, angle, SPP, DEFAULT_ORDERS) > 30 * sigma**2
+    assert slow_variance(_drop(signal, 0.1, seed=7), angle, SPP,
+                         DEFAULT_ORDERS) > 30 * sigma**2
+
+
+def test_a_hold_too_short_for_slowly_changing_harmonics_gives_no_figure() -> None:
+    angle = _angle(round(1.5 * SPP))
+    assert math.isnan(slow_variance(_signal(angle, CONTENT), angle, SPP, DEFAULT_ORDERS))
