@@ -258,7 +258,7 @@ SLOW_POWERS = 4
 """Each harmonic's phasor may move through a hold as a cubic in time (``slow_variance``).
 A once-per-revolution modulation turns by a quarter revolution over the longest holds
 (13 electrical periods of 50 per revolution); a quadratic left 15 times the noise of it on
-a development disk (rotor_eccentricity@24: 1,708 times before), a cubic 1.8."""
+a development disk (rotor_eccentricity@24: 1,708 times before), a cubic 1.9."""
 
 
 def slow_variance(window: NDArray[np.float64], angle: NDArray[np.float64],
