@@ -263,42 +263,34 @@ a development disk (rotor_eccentricity@24: 1,708 times before), a cubic 1.9."""
 
 def slow_variance(window: NDArray[np.float64], angle: NDArray[np.float64],
                   samples_per_period: float, slow_orders: int) -> float:
-    """σ² of one sample that the later half of a hold leaves once its harmonics are let
-    change slowly, or NaN where the hold is too short for it.
+    """σ² of one sample that a hold leaves once its harmonics are let change slowly, or NaN
+    where the hold is too short for it.
 
     A motion whose harmonics move through the hold (a once-per-revolution modulation
     turning with the rotor, a drifting clock's phase) is periodic to a model that takes
     each hold's mean phasors; only what this fit leaves is not. Orders 1..``slow_orders``
-    change as a cubic in time; every higher order up to the sampling rate is fitted
-    still, the orders beyond the Nyquist order included: on a belt with strong cogging,
-    orders 15 to 20 at 34 Hz aliased to tones between the harmonics and left 30 to 135
-    times the noise, periodic all the same (development detent_torque+flux_harmonics@821054).
-    Only the later half is counted, where a ringing tail has died away.
+    (and the mean) change as a cubic in time; every higher order up to the sampling rate
+    is fitted still, the orders beyond the Nyquist order included: on a belt with strong
+    cogging, orders 15 to 20 at 34 Hz aliased to tones between the harmonics and left 30
+    to 135 times the noise, periodic all the same (development
+    detent_torque+flux_harmonics@821054). Aliases of a lower order add no column the fit
+    can use, so the noise's degrees of freedom are counted from the design's rank.
     """
     ok = ~np.isnan(window)
     y = window[ok]
     x = angle[ok]
     used = y.size
-    if used < 8:
-        return math.nan
-    tau = np.linspace(-1.0, 1.0, window.size)[ok]
-    powers = np.vander(tau, SLOW_POWERS, increasing=True)  # 1, τ, τ², τ³
     slow = min(slow_orders, _nyquist(samples_per_period))
     columns = SLOW_POWERS * (1 + 2 * slow)
-    # Orders above the Nyquist order too, up to the sampling rate: strong high orders (a
-    # cogging rotor on a stiff belt) alias to tones between the harmonics, periodic still.
+    if used < 8 or slow < 1 or columns >= (1.0 - NOISE_DOF_SHARE) * used:
+        return math.nan
     still = min(2 * _nyquist(samples_per_period),
                 slow + int((1.0 - NOISE_DOF_SHARE) * used - columns) // 2)
-    if columns >= (1.0 - NOISE_DOF_SHARE) * used or slow < 1:
-        return math.nan
-    k = np.arange(1, slow + 1)
-    phase = np.outer(x, k)
-    moving = np.column_stack([np.cos(phase), np.sin(phase)])
-    parts = [powers, *(moving * powers[:, j:j + 1] for j in range(1, SLOW_POWERS)), moving]
-    if still > slow:
-        higher = np.outer(x, np.arange(slow + 1, still + 1))
-        parts += [np.cos(higher), np.sin(higher)]
-    design = np.column_stack(parts)
+    powers = np.vander(np.linspace(-1.0, 1.0, window.size)[ok], SLOW_POWERS,
+                       increasing=True)  # 1, τ, τ², τ³
+    moving = _design(x, slow)
+    design = np.column_stack([_design(x, max(still, slow)),
+                              *(moving * powers[:, j:j + 1] for j in range(1, SLOW_POWERS))])
     coef, _, rank, _ = np.linalg.lstsq(design, y, rcond=None)
     residual = y - design @ coef
     left: float = float(residual @ residual) / max(used - int(rank), 1)
