@@ -15,7 +15,7 @@ turns (friction depends on the load's velocity, mean plus ripple).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Set
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -97,6 +97,19 @@ trial friction@2082563418). Fitted with them, the nominal model left χ² 3.1 mi
 no group could fit; without them friction was named at 14.3 and 13.3 % of the holding
 torque (the plant's 14.3 and 13.2) and left 541 of 545 values. Under a hundredth of the
 ripple the phasors err less than the model floor (``MODEL_FLOOR``) allows for anyway."""
+SPEED_CHANGE_SHARE = 0.3
+"""Share of the load's own speed by which its speed may change through a hold before the hold
+is no steady motion. A periodic motion has no mean acceleration over whole periods; one whose
+mean acceleration, times the hold's length, is a large part of the speed the load should turn
+at stood still or caught up in the hold. Through a compliant belt, Coulomb friction holds the
+load still after a reversal until the motor has wound the belt through the friction's two
+levels (their sum over the belt's stiffness, at the load: 0.22 rad, 0.44 s at 14 Hz on
+benchmark trial friction@416744003, 33 % of the holding torque through a 53 Hz belt): the
+first hold of three operating points changed by 89 to 113 % of the load's speed (9 to 18
+times what the noise gives), every other by at most 36 % (3 times), and the one at 89 % alone
+left χ² 1,902 of the nominal fit's 4,285."""
+SPEED_CHANGE_SIGMAS = 5.0
+"""...and by this many standard deviations of the change the sensor's noise alone gives."""
 NOISE_QUANTILE = 0.1
 """The recording's own noise variance: this low quantile of its segments' residual
 variances, the quietest being those where nothing but the sensor's noise is left."""
@@ -346,13 +359,17 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
     rows: list[tuple[int, Measured]] = []
     period = timeline.sync_period_s
     skipped = [_skipped(r, period) for r in rejected]
-    clipped_n = sparse_n = erratic_n = 0
+    clipped_n = sparse_n = erratic_n = unsteady_n = 0
     advice = clipping_advice(timeline.metadata)
-    erratic = not_periodic(measured, orders, tangential_signal(timeline))
+    signal = tangential_signal(timeline)
+    erratic = _why_not_periodic(not_periodic(measured, orders, signal))
+    unsteady = speed_changed(measured, signal, timeline.metadata)
     for condition in conditions:
         key = ConditionKey(condition.amplitude_mA, condition.electrical_hz)
         usable = []
-        erratic.update(_erratic_point(condition.measured, erratic))
+        # Only the rotor's irregular motion is a matter of the operating point; a load still
+        # catching up after a reversal is a matter of the hold's place in the schedule.
+        erratic.update(_why_not_periodic(_erratic_point(condition.measured, erratic.keys())))
         for m in condition.measured:
             where = (m.segment.start * period, m.segment.stop * period)
             clipped = m.saturated / max(m.segment.samples, 1)
@@ -360,12 +377,12 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
                 sparse_n += 1
                 skipped.append(Skipped(
                     *where, f"{key.label()}: too few samples per period for order {orders}"))
+            elif id(m) in unsteady:
+                unsteady_n += 1
+                skipped.append(Skipped(*where, f"{key.label()}: {unsteady[id(m)]}"))
             elif id(m) in erratic:
                 erratic_n += 1
-                skipped.append(Skipped(*where, (
-                    f"{key.label()}: the motion was not periodic ({erratic[id(m)]}): the "
-                    "chain's own mode swung beside the harmonics, as near a resonance, or "
-                    "the rotor nearly lost step")))
+                skipped.append(Skipped(*where, f"{key.label()}: {erratic[id(m)]}"))
             elif clipped > MAX_CLIPPED:
                 clipped_n += 1
                 skipped.append(Skipped(*where, (
@@ -388,6 +405,10 @@ def observe(timeline: Timeline, *, orders: int = DIAGNOSIS_ORDERS,
         reasons.append(f"{erratic_n} settled segment(s) whose motion was not periodic: "
                        "record at speeds away from the chain's resonance, at currents well above "
                        "the load's torque, or with the unit trimmed")
+    if unsteady_n:
+        reasons.append(f"{unsteady_n} settled segment(s) through which the load's speed "
+                       "changed: hold longer after each reversal, or record at currents well "
+                       "above the load's friction")
     if sparse_n:
         reasons.append(f"{sparse_n} settled segment(s) with too few samples per period for "
                        f"order {orders}: record at lower speeds")
@@ -462,7 +483,73 @@ def not_periodic(measured: list[Measured], orders: int, signal: NDArray[np.float
     return out
 
 
-def _erratic_point(measured: tuple[Measured, ...], erratic: dict[int, str]) -> dict[int, str]:
+def speed_changed(measured: list[Measured], signal: NDArray[np.float64],
+                  metadata: RecordingMetadata) -> dict[int, str]:
+    """The segments through which the load's speed changed (by ``id``), in words.
+
+    The change is the hold's mean acceleration times its length, against the holds at the
+    same speed: the sensor's bias and any centripetal part a turned element reads (which
+    grows with the speed, not with its sign) are common to them. A hold through which the
+    load stood still and then caught up is no steady motion at the commanded speed, however
+    quiet it is: the harmonics of a load at rest are small, not wrong, so neither the fit's
+    residual nor ``not_periodic`` sees it.
+    """
+    period = metadata.sync_period_s
+    left = np.array([m.harmonics.noise_variance for m in measured])
+    if left.size < 2 or not np.any(np.isfinite(left)):
+        return {}
+    noise = float(np.nanquantile(left, NOISE_QUANTILE))
+    speeds: dict[float, list[Measured]] = {}
+    for m in measured:
+        if not m.segment.ringing:  # a ringing hold's decays are its fit's, speed and all
+            speeds.setdefault(round(abs(m.segment.electrical_hz(period)), 1), []).append(m)
+    out: dict[int, str] = {}
+    for hz, same in speeds.items():
+        if len(same) < 3 or hz <= 0.0:
+            continue  # no bias to measure the change against
+        bias = float(np.median([m.harmonics.dc for m in same]))
+        # The load's tangential speed at the sensor: mechanical speed through the gear.
+        load = 2.0 * math.pi * hz / metadata.rotor_teeth * metadata.gear_ratio
+        speed = load * metadata.sensor_radius_m
+        for m in same:
+            seg = m.segment
+            used = int(np.count_nonzero(np.isfinite(signal[seg.start:seg.stop])))
+            if used < 2:
+                continue
+            length = seg.samples * period
+            change = (m.harmonics.dc - bias) * length
+            sigma = math.sqrt(noise / used) * length
+            if (abs(change) > SPEED_CHANGE_SHARE * speed
+                    and abs(change) > SPEED_CHANGE_SIGMAS * sigma):
+                out[id(m)] = (f"the load's speed changed by {abs(change) / speed:.0%} of its "
+                              f"own through the hold ({abs(change) / sigma:.0f} times what the "
+                              "noise gives): it stood still or caught up")
+    # A load that changed speed in a hold was not at its speed in the holds before it at the
+    # same operating point either (friction@416744003: a 6.5 Hz load stood still through
+    # the whole first hold after a reversal, quiet and so unchanged, and caught up in the
+    # second). The run is assumed to end at the commanded speed.
+    later: str | None = None
+    run: tuple[int, float] | None = None
+    for m in sorted(measured, key=lambda m: -m.segment.start):
+        key = (m.segment.amplitude_mA, round(m.segment.electrical_hz(period), 1))
+        if key != run:
+            run, later = key, None
+        if id(m) in out:
+            later = later or ("the load's speed changed in a later hold at this operating "
+                              "point: it had not reached its speed yet")
+        elif later is not None:
+            out[id(m)] = later
+    return out
+
+
+def _why_not_periodic(what: dict[int, str]) -> dict[int, str]:
+    """``not_periodic``'s findings as the reasons a skipped segment is given."""
+    return {key: (f"the motion was not periodic ({text}): the chain's own mode swung beside "
+                  "the harmonics, as near a resonance, or the rotor nearly lost step")
+            for key, text in what.items()}
+
+
+def _erratic_point(measured: tuple[Measured, ...], erratic: Set[int]) -> dict[int, str]:
     """The other holds of an operating point at least half of whose holds were not periodic.
 
     Whether a rotor nearly loses step is a matter of its current and speed; trim steps of

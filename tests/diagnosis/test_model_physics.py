@@ -1055,6 +1055,33 @@ def test_holds_where_a_rough_unit_nearly_loses_step_are_skipped_and_said_why(
     assert with_them.free.chi2 / with_them.free.dof > 100.0
 
 
+def test_holds_where_friction_holds_a_belted_load_still_after_a_reversal_are_skipped(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Benchmark trial friction@416744003 (a fresh seed, where this was found): a belt of
+    53 Hz whose load carries Coulomb friction of 26 and 33 % of the holding torque. After
+    each reversal at 770 mA the load stands still until the motor has wound the belt
+    through the friction's two levels, 0.4 s at 14 Hz and a whole hold and more at 6.5 Hz,
+    then catches up. A load at rest is quiet, so neither the harmonics' residual nor the
+    settling sees it; kept, the first 14 Hz hold alone left χ² 1,902 of the nominal fit's
+    4,285 for 48 holds, and friction was not named. Its speed changes through the hold by
+    nearly all of the load's speed, and so does the second 6.5 Hz hold's, whose first hold
+    had not reached it."""
+    timeline = _timeline(Case(TrialClass(frozenset({Effect.FRICTION})), 416744003))
+    with threadpool_limits(limits=1, user_api="blas"):
+        obs, nominal = nominal_of(timeline)
+        changed = [s for s in obs.skipped if "speed changed" in s.reason]
+        assert sum("through the hold" in s.reason for s in changed) == 3
+        assert sum("in a later hold" in s.reason for s in changed) == 2
+        assert all(s.reason.startswith("770 mA") for s in changed)
+        assert any(s.start_s < 9.0 < s.stop_s and "-14.0 Hz" in s.reason for s in changed)
+        assert len(obs.skipped) == len(changed)
+        monkeypatch.setattr(observations, "SPEED_CHANGE_SHARE", math.inf)
+        kept, with_them = nominal_of(timeline)
+    assert kept.count == obs.count + len(changed)
+    assert with_them.balanced.chi2 > 1.5 * nominal.balanced.chi2 + 1000.0
+
+
 def test_harmonics_turning_with_the_rotor_are_a_periodic_motion() -> None:
     """Development disk rotor_eccentricity@24: the airgap's once-per-revolution modulation
     leaves up to 1,700 times the noise beside each hold's mean harmonics, at 4 to 13 % of
@@ -1065,6 +1092,8 @@ def test_harmonics_turning_with_the_rotor_are_a_periodic_motion() -> None:
     signal = tangential_signal(timeline)
     measured, _ = measure(timeline, observations.measure_options(DIAGNOSIS_ORDERS, None), map)
     assert observations.not_periodic(measured, DIAGNOSIS_ORDERS, signal) == {}
+    # Nor does its load's speed change through a hold, though it swings once per revolution.
+    assert observations.speed_changed(measured, signal, timeline.metadata) == {}
     noise = float(np.quantile([m.harmonics.noise_variance for m in measured],
                               observations.NOISE_QUANTILE))
     loud = [m for m in measured
