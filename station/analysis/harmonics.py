@@ -289,7 +289,7 @@ def slow_variance(window: NDArray[np.float64], angle: NDArray[np.float64],
     powers = np.vander(np.linspace(-1.0, 1.0, window.size)[ok], SLOW_POWERS,
                        increasing=True)  # 1, τ, τ², τ³
     moving = _design(x, slow)
-    design = np.column_stack([_design(x, max(still, slow)),
+    design = np.column_stack([_design(x, still),
                               *(moving * powers[:, j:j + 1] for j in range(1, SLOW_POWERS))])
     coef, _, rank, _ = np.linalg.lstsq(design, y, rcond=None)
     residual = y - design @ coef
