@@ -124,7 +124,7 @@ def test_physics_below_detection_is_given_no_id_it_does_not_have(diagnosed: list
 def test_a_trials_excess_over_its_clean_twin_says_whether_there_was_anything_to_see(
     effect: Effect, seed: int, visible: bool,
 ) -> None:
-    plan = plan_trial(Case(TrialClass(frozenset({effect})), seed))
+    plan = plan_trial(Case(TrialClass(frozenset({effect})), seed, first_draw=True))
     recorded = simulate_timeline(plan.unit, plan.schedule, seed=seed, loss=plan.loss,
                                  substeps=PLANT_SUBSTEPS)
     excess = twin_excess(plan, recorded)
@@ -141,7 +141,8 @@ def test_a_combination_is_only_as_visible_as_its_weakest_effect() -> None:
     thousands over its twin without it (23,502 when written), the pair is only as
     visible as what the coupling adds once the detent is fitted (139 when written)."""
     plan = plan_trial(Case(TrialClass(frozenset({Effect.DETENT_TORQUE,
-                                                 Effect.LOAD_RESONANCE})), 21))
+                                                 Effect.LOAD_RESONANCE})), 21,
+                              first_draw=True))
     recorded = simulate_timeline(plan.unit, plan.schedule, seed=21, loss=plan.loss,
                                  substeps=PLANT_SUBSTEPS)
     assert twin_excess(plan, recorded) < 20 * VISIBLE_EXCESS

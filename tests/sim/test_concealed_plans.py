@@ -9,18 +9,31 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Effect
+from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind
 from station.diagnosis.diagnose import nominal_of
 from station.physics.params import UnitParams
 from station.physics.plant import modal_analysis
-from station.schedules import RANDOM_CHARACTERIZATION, random_characterization, velocity_for
+from station.schedules import (
+    RANDOM_CHARACTERIZATION,
+    Schedule,
+    random_characterization,
+    velocity_for,
+)
 from station.sim.concealed import (
+    BELT_MODE_MARGIN,
+    COUPLING_REACH_ORDER,
+    COUPLING_SPAN,
     FRICTION_HEADROOM,
     Case,
     TrialClass,
+    _belt_free_hz,
     _ceiling,
+    _coupling_within_reach,
+    _kept_as_planned,
+    _load_for,
     _runnable,
     _steady_peaks,
+    coupling_mode_hz,
     nominal_equivalent,
     plan_trial,
 )
@@ -59,7 +72,7 @@ def test_a_belt_units_twin_without_its_coupling_keeps_the_couplings_compliance_i
     with the belt sets the chain's low mode, which a twin with the belt alone would move
     far (CLI.md: a declared belt's compliance is nominal physics)."""
     cls = TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE}))
-    unit = plan_trial(Case(cls, 1)).unit
+    unit = plan_trial(Case(cls, 1, first_draw=True)).unit
     assert unit.mechanics.belt is not None and unit.mechanics.coupling is not None
     bare = draw_unit(1, load=unit.load, effects=frozenset({Effect.DETENT_TORQUE}))
     twin = nominal_equivalent(bare, unit)
@@ -168,3 +181,84 @@ def test_the_next_characterization_stays_below_the_slowest_stalled_speed(
     full = 16 * STANDARD_GRAVITY
     peaks = [full if abs(h.velocity) in stalls else 1.0 for h in holds]
     assert _ceiling(replace(schedule, holds=tuple(holds)), peaks, below_hz) == ceiling
+
+
+def _fastest_hz(schedule: Schedule) -> float:
+    return max(abs(h.velocity) for h in schedule.holds) / (4.0 * schedule.microsteps)
+
+
+@pytest.mark.parametrize("load", [LoadKind.DISK, LoadKind.BELT])
+def test_a_concealed_coupling_is_put_where_the_schedules_harmonics_reach_its_mode(
+    load: LoadKind,
+) -> None:
+    """A coupling drawn over 60-400 Hz whatever the schedule was beyond every order the
+    drive's strong harmonics reached on 7 of 8 benchmark trials: nothing to see. Moved
+    within reach, never onto a belt's own free mode; left alone where it was already
+    there; the same from the same seed."""
+    effects = frozenset({Effect.LOAD_RESONANCE})
+    moved = kept = 0
+    for seed in range(40):
+        unit = draw_unit(seed, load=load, effects=effects)
+        if unit.mechanics.belt is not None and (
+                BELT_MODE_MARGIN * _belt_free_hz(unit.mechanics.belt)
+                >= COUPLING_REACH_ORDER * RANDOM_CHARACTERIZATION.electrical_hz[1]):
+            continue  # ``plan_trial`` puts such a coupling on a disk
+        schedule = random_characterization(np.random.default_rng(seed))
+        reach = COUPLING_REACH_ORDER * _fastest_hz(schedule)
+        placed = _coupling_within_reach(unit, schedule, seed)
+        mode = coupling_mode_hz(placed)
+        assert placed.mechanics.coupling is not None
+        assert placed.mechanics.coupling.damping_ratio == unit.mechanics.coupling.damping_ratio  # type: ignore[union-attr]
+        assert placed == _coupling_within_reach(unit, schedule, seed)
+        if coupling_mode_hz(unit) <= reach:
+            assert placed == unit
+            kept += 1
+            continue
+        moved += 1
+        if unit.mechanics.belt is None:
+            assert reach / COUPLING_SPAN <= mode <= reach * (1 + 1e-9)
+        else:
+            floor = BELT_MODE_MARGIN * _belt_free_hz(unit.mechanics.belt)
+            assert mode >= floor * (1 - 1e-9)
+            assert mode <= max(reach, floor) * (1 + 1e-9)
+        assert placed.motor == unit.motor and placed.mechanics.belt == unit.mechanics.belt
+    assert moved >= 5 and kept >= 1
+
+
+def test_a_belt_whose_pulley_and_load_swing_apart_beyond_any_reach_carries_its_coupling_on_a_disk(
+) -> None:
+    """Such a belt's coupling can only soften the belt, which CLI.md makes nominal physics:
+    a trial concealing it would conceal nothing."""
+    effects = frozenset({Effect.LOAD_RESONANCE})
+    widest = COUPLING_REACH_ORDER * RANDOM_CHARACTERIZATION.electrical_hz[1]
+    seen = set()
+    for seed in range(40):
+        belt = draw_unit(seed, load=LoadKind.BELT, effects=effects).mechanics.belt
+        assert belt is not None
+        reachable = BELT_MODE_MARGIN * _belt_free_hz(belt) < widest
+        case = Case(TrialClass(effects), seed)
+        assert _load_for(case, LoadKind.BELT) is (LoadKind.BELT if reachable else LoadKind.DISK)
+        assert _load_for(case, LoadKind.DISK) is LoadKind.DISK
+        assert _load_for(Case(TrialClass(frozenset({Effect.DETENT_TORQUE})), seed),
+                         LoadKind.BELT) is LoadKind.BELT
+        seen.add(reachable)
+    assert seen == {True, False}
+
+
+def test_a_twin_keeps_the_coupling_and_friction_its_unit_was_planned_with() -> None:
+    """The plan moves a coupling and scales friction for its schedule; a twin drawn again
+    from the seed would carry them as first drawn, and differ from its unit by more than
+    the effect taken away."""
+    effects = frozenset({Effect.LOAD_RESONANCE, Effect.FRICTION, Effect.DETENT_TORQUE})
+    unit = draw_unit(5, load=LoadKind.DISK, effects=effects)
+    mech = unit.mechanics
+    assert mech.coupling is not None and mech.load_friction is not None
+    planned = replace(unit, mechanics=replace(
+        mech, coupling=replace(mech.coupling, stiffness_Nm_per_rad=1.0),
+        load_friction=replace(mech.load_friction, coulomb_pos_Nm=0.0)))
+    kept = effects - {Effect.DETENT_TORQUE}
+    twin = _kept_as_planned(draw_unit(5, load=LoadKind.DISK, effects=kept), planned)
+    assert twin.mechanics.coupling == planned.mechanics.coupling
+    assert twin.mechanics.load_friction == planned.mechanics.load_friction
+    bare = _kept_as_planned(draw_unit(5, load=LoadKind.DISK, effects=frozenset()), planned)
+    assert bare.mechanics.coupling is None and bare.mechanics.load_friction is None
