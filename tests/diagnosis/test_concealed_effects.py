@@ -217,13 +217,15 @@ def test_a_twin_the_diagnosis_refuses_gives_no_measure_rather_than_ending_the_be
             raise NotDiagnosable("41 settled segment(s) clipped at the sensor's full scale")
         return timeline
 
-    def held_out_with(nominal: object, _effects: frozenset[Effect]) -> HeldOut:
+    def held_out_with(nominal: object, _effects: frozenset[Effect],
+                      larger: object = None) -> HeldOut:
         total = 1123.0 if nominal is recorded else 1000.0
         return HeldOut(np.array([total]), np.zeros(10))
 
     monkeypatch.setattr(concealed_module, "simulate_timeline", simulated)
     monkeypatch.setattr(concealed_module, "nominal_as_recorded", nominal_as_recorded)
     monkeypatch.setattr(concealed_module, "_held_out_with", held_out_with)
+    monkeypatch.setattr(concealed_module, "_fitted_with", lambda *_args: object())
     measured = twin_excess(plan, recorded)  # type: ignore[arg-type]
     assert len(twins) == len(effects)
     assert measured == excess

@@ -35,7 +35,6 @@ from station.diagnosis.diagnose import (
     Nominal,
     Search,
     _refine_angles,
-    _transplant,
     candidate_of,
     compare,
     coupling_as_belt,
@@ -49,6 +48,7 @@ from station.diagnosis.diagnose import (
     settle_fallback,
     settling_warnings,
     tied_to_rotor,
+    transplanted,
     unexplained_of,
     without_soakers,
 )
@@ -206,7 +206,7 @@ def test_a_drifting_sensor_clock_is_found_from_the_recording_alone() -> None:
         nominal = fit_nominal(obs).balanced
         model = Model(replace(nominal.model.spec,
                               effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})), nominal.model.obs)
-        start = _transplant(model, nominal)
+        start = transplanted(model, nominal)
         starts = [model.with_values(start, values)
                   for values in GROUP_ESTIMATES[Effect.SENSOR_CLOCK_DRIFT](model, start)]
         result = fit(model, starts, keep=len(starts))
@@ -226,7 +226,7 @@ def test_a_clocks_sawtooth_is_measured_at_its_full_size_so_its_rate_stands_out()
         nominal = fit_nominal(obs).balanced
         model = Model(replace(nominal.model.spec,
                               effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})), nominal.model.obs)
-        start = _transplant(model, nominal)
+        start = transplanted(model, nominal)
         delay, _ = segment_delays(model, start)
         peaks = _starts_clock(model, start, CLOCK_PEAKS)
     assert peaks[0]["clock_drift_ppm"][0] == pytest.approx(sensor.clock_drift_ppm, abs=10.0)
@@ -599,7 +599,7 @@ def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_
         return compare(kept, with_coupling)
 
     assert larger.chi2 < 2.0 * larger.dof  # the coupling carries the belt's mode
-    assert against_coupling(_transplant(model, larger)).significant
+    assert against_coupling(transplanted(model, larger)).significant
     start = coupling_as_belt(model, larger)
     assert start is not None
     moved = against_coupling(start)
@@ -664,7 +664,7 @@ def test_a_coupling_gets_its_spring_back_from_a_belt_that_had_taken_the_coupling
     })
     with threadpool_limits(limits=1, user_api="blas"):
         base = fit(smaller, [_refine_angles(smaller, taken)], keep=1)
-    start = _transplant(larger, base)
+    start = transplanted(larger, base)
     chains = [larger.with_values(start, v) for v in belt_as_coupling(larger, start)]
     assert chains
     # The rotor stays as it was, with its drag; the coupling carries the belt's spring.
@@ -1287,7 +1287,7 @@ def test_a_short_polish_of_every_start_picks_the_ones_worth_polishing_in_full() 
         base = nominal.balanced
         model = Model(replace(base.model.spec, effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})),
                       base.model.obs)
-        start = _transplant(model, base)
+        start = transplanted(model, base)
         estimated = [model.with_values(start, v)
                      for v in GROUP_ESTIMATES[Effect.SENSOR_CLOCK_DRIFT](model, start)]
         chosen = chosen_starts(model, [start], 1, estimated)
@@ -1563,7 +1563,7 @@ def test_every_column_of_the_jacobian_is_what_the_residuals_themselves_change_by
     names = [b.name for b in model.layout.blocks for _ in range(b.size)]
     with threadpool_limits(limits=1, user_api="blas"):
         for _ in range(2):
-            p = np.clip(_transplant(model, nominal) + 0.02 * span * rng.standard_normal(span.size),
+            p = np.clip(transplanted(model, nominal) + 0.02 * span * rng.standard_normal(span.size),
                         low + 1e-3 * span, high - 1e-3 * span)
             # Friction on (it starts at none), so that its smoothing's column is no zero.
             p = model.with_values(p, {"coupling_damping_ratio": [0.3],
@@ -1633,7 +1633,7 @@ def test_a_held_out_condition_never_fits_better_than_the_fit_that_had_it() -> No
         base = fit_nominal(obs).balanced
         model = Model(replace(base.model.spec, effects=frozenset({Effect.RELUCTANCE_TORQUE})),
                       base.model.obs)
-        early = polish(model, _transplant(model, base), max_nfev=2)
+        early = polish(model, transplanted(model, base), max_nfev=2)
         held = held_out(early)
     assert not early.converged
     fitted = _per_condition(model, early.residuals)
@@ -1656,7 +1656,7 @@ def test_a_gain_the_smaller_model_recovers_when_polished_from_the_larger_is_not_
         search = Search(base.model.obs, nominal_candidate, nominal.free, None)
         good = search.get(effects)
         model = good.fit.model
-        short = polish(model, _transplant(model, base), max_nfev=2)
+        short = polish(model, transplanted(model, base), max_nfev=2)
         search.cache[(effects, False)] = Candidate(good.spec, short, held_out(short))
         larger = search.get(effects | {Effect.CURRENT_LOOP_LAG})
         before = compare(search.cache[(effects, False)], larger)
