@@ -20,7 +20,8 @@ fitted with the other effect's group; a belt's coupling leaves its compliance in
 twin's belt: ``station.sim.concealed.twin_excess``, ``nominal_equivalent``;
 an excess below −50 is a failed fit, not invisible physics, and counts as a miss; so
 does a twin the diagnosis refuses).
-The trials within ±50 are counted apart and must not be given a wrong id; the
+The trials within ±50 are counted apart and must not be given a wrong id (an
+ambiguity whose rivals hold a concealed effect is none: ``without_wrong_id``); the
 share over every trial is reported too.
 A control (a clean unit) must be given no id and no mismatch: a residual flagged on a
 clean unit is a false alarm, counted apart from the ids.
@@ -58,6 +59,7 @@ from station.sim.concealed import (
     named,
     run_trial,
     trial_recording,
+    without_wrong_id,
 )
 
 PER_CLASS = 8
@@ -87,9 +89,6 @@ def _share_without(trials: list[Trial], key: str) -> float:
             if trials else 1.0)
 
 
-def _no_wrong_id(trial: Trial) -> bool:
-    truth = {e.value for e in trial.case.cls.effects}
-    return REFUSED not in trial.doc and all(e in truth for e, _ in named(trial.doc))
 
 
 def _alone(trials: list[Trial], root: Path) -> list[tuple[float, bool]]:
@@ -185,7 +184,8 @@ def measure() -> list[BenchRecord]:
         BenchRecord("diagnosis_below_detection", float(len(hidden)), "trials",
                     UNDETECTABLE_SHARE * len(concealing), Goal.AT_MOST),
         BenchRecord("diagnosis_below_detection_without_wrong_id",
-                    statistics.fmean(1.0 if _no_wrong_id(t) else 0.0 for t in hidden)
+                    statistics.fmean(1.0 if without_wrong_id(t.case.cls, t.doc) else 0.0
+                                    for t in hidden)
                     if hidden else 1.0, "fraction", CONTROL_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_score_mean", statistics.fmean(t.score for t in trials),
                     "fraction", NAMED_TARGET, Goal.AT_LEAST),

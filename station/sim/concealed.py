@@ -721,6 +721,22 @@ def score(cls: TrialClass, doc: dict[str, Any]) -> float:
     return 0.5 if covered and len(found) == len(truth) else 0.0
 
 
+def without_wrong_id(cls: TrialClass, doc: dict[str, Any]) -> bool:
+    """Whether no id was given that the unit does not have: each named effect is one of
+    the concealed ones, or says it cannot be separated from one (an honest ambiguity, which
+    ``score`` counts as covering the truth).
+
+    Among rivals the data cannot order, which one stands first is the rule of one standard
+    error's choice (``diagnose.simplest_first``), not a claim: benchmark trial
+    magnetic_saturation@1777279463 (45 over its twin, below detection) was named
+    ``reluctance_torque`` with ``magnetic_saturation`` and ``load_resonance`` as its rivals.
+    """
+    if REFUSED in doc:
+        return False
+    truth = {e.value for e in cls.effects}
+    return all(e in truth or truth & set(rivals) for e, rivals in named(doc))
+
+
 def outcome(doc: dict[str, Any]) -> str:
     """The diagnosis as one confusion-matrix column: ``a|b`` for inseparable rivals,
     ``?`` for an unexplained residual."""

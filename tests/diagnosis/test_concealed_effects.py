@@ -57,6 +57,7 @@ from station.sim.concealed import (
     record_trial,
     twin_excess,
     weakest_part,
+    without_wrong_id,
 )
 from station.sim.concealed import run_trial as run
 from station.sim.inprocess import simulate_timeline
@@ -108,8 +109,23 @@ def test_physics_below_detection_is_given_no_id_it_does_not_have(diagnosed: list
     given no id but its own."""
     for t in diagnosed:
         if not t.detectable:
-            truth = {e.value for e in t.case.cls.effects}
-            assert {e for e, _ in named(t.doc)} <= truth, t.case.label
+            assert without_wrong_id(t.case.cls, t.doc), t.case.label
+
+
+@pytest.mark.parametrize(("entries", "honest"), [
+    ([("magnetic_saturation", [])], True),
+    ([("reluctance_torque", ["magnetic_saturation", "load_resonance"])], True),
+    ([("load_resonance", [])], False),
+    ([("load_resonance", ["reluctance_torque"])], False),
+    ([("magnetic_saturation", []), ("load_resonance", [])], False),
+    ([], True),
+])
+def test_an_ambiguity_that_holds_the_truth_is_no_wrong_id(
+        entries: list[tuple[str, list[str]]], honest: bool) -> None:
+    doc = {"effects": [{"id": e, "cannot_separate_from": r} for e, r in entries]}
+    assert without_wrong_id(TrialClass(frozenset({Effect.MAGNETIC_SATURATION})), doc) is honest
+    assert not without_wrong_id(TrialClass(frozenset({Effect.MAGNETIC_SATURATION})),
+                                {REFUSED: "clipped"})
 
 
 @pytest.mark.parametrize(("effect", "seed", "visible"), [
