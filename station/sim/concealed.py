@@ -643,13 +643,11 @@ def _held_out_with(nominal: Nominal, effects: frozenset[Effect],
     """
     from station.diagnosis.diagnose import transplanted  # noqa: PLC0415
     from station.diagnosis.fit import held_out, polish  # noqa: PLC0415
-    from station.diagnosis.model import Model  # noqa: PLC0415
 
     result = _fitted_with(nominal, effects)
     if effects and larger is not None and larger.model.spec.effects > effects:
-        model = Model(result.model.spec, result.model.obs)
         with threadpool_limits(limits=1, user_api="blas"):
-            nested = polish(model, transplanted(model, larger))
+            nested = polish(result.model, transplanted(result.model, larger))
         if nested.chi2 < result.chi2:
             result = nested
     return held_out(result)
