@@ -1886,3 +1886,27 @@ def test_a_model_whose_polish_ran_out_is_finished_before_larger_ones_grow_from_i
     assert finished[0].fit.chi2 <= 1.01 * done.fit.chi2
     assert search.latest(short) is finished[0]
     assert finished[1] is search.nominal
+
+
+def test_a_settling_pass_fits_the_nominal_again_from_the_chain_found_without_the_grid(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Development trial load_resonance@21, a belt: the chain its first fit settled adds
+    short holds (645 values to 1,199). Fitted again from that first chain alone, the
+    nominal model must end where a search of the whole chain grid on the added holds ends,
+    and must not search the grid (most of a pass's cost)."""
+    timeline = _timeline(Case(TrialClass(frozenset({Effect.LOAD_RESONANCE})), 21))
+    with threadpool_limits(limits=1, user_api="blas"):
+        first = diagnose.aligned(timeline).first
+        before = fit_nominal(first)
+        settled, _ = nominal_of(timeline)
+        assert settled.count > first.count
+        grid = fit_nominal(settled)
+
+        def no_grid(*_: object) -> None:
+            raise AssertionError("the chain grid was searched again")
+
+        monkeypatch.setattr(diagnose, "nominal_starts", no_grid)
+        again = fit_nominal(settled, previous=before)
+    assert again.balanced.chi2 <= grid.balanced.chi2 * (1.0 + 1e-4)
+    assert again.free.chi2 <= grid.free.chi2 * (1.0 + 1e-4)
