@@ -1273,11 +1273,19 @@ def wrong_angle_chi2(obs: Observations, result: Fit) -> float:
 
 def _refit_job(obs: Observations, nominal_chi2: float, smaller: Fit, larger: Fit
                ) -> Candidate | None:
+    """``smaller`` polished again from ``larger``'s point (``polished_from``), as a
+    candidate; None when that is no better."""
+    result = polished_from(smaller, larger)
+    return None if result is None else candidate_of(obs, nominal_chi2, result)
+
+
+def polished_from(smaller: Fit, larger: Fit) -> Fit | None:
     """``smaller``'s model polished again from ``larger``'s point with the added groups
-    taken out; the candidate when it fits better than ``smaller`` did, else None."""
-    model = Model(smaller.model.spec, obs)
+    taken out (``Search.refined``), when that fits better than ``smaller`` by more than
+    ``REFINE_TOLERANCE``; else None."""
+    model = smaller.model
     # The nominal was fitted from a grid of chains: only a belt a coupling found is new.
-    starts = [transplanted(model, larger)] if smaller.model.spec.effects else []
+    starts = [transplanted(model, larger)] if model.spec.effects else []
     as_belt = coupling_as_belt(model, larger)
     if as_belt is not None:
         starts.append(as_belt)
@@ -1286,7 +1294,7 @@ def _refit_job(obs: Observations, nominal_chi2: float, smaller: Fit, larger: Fit
     result = min((polish(model, x) for x in starts), key=lambda f: f.chi2)
     if not result.chi2 < smaller.chi2 - REFINE_TOLERANCE * max(1.0, smaller.chi2 / smaller.dof):
         return None
-    return candidate_of(obs, nominal_chi2, result)
+    return result
 
 
 def _finish_job(obs: Observations, nominal_chi2: float, unfinished: Fit) -> Candidate | None:

@@ -632,7 +632,7 @@ def _held_out_with(nominal: Nominal, effects: frozenset[Effect],
     """The held-out residuals of the nominal model with ``effects``' groups; with
     ``larger`` (a fit with more groups), also polished from that fit's point with its
     other groups taken out, the better kept, as the diagnosis polishes a smaller model
-    again (``Search.refined``) before a larger one's gain counts.
+    again before a larger one's gain counts (``diagnose.polished_from``).
 
     Fitted from the nominal alone, the model without one effect of a pair can stop in a
     basin the diagnosis leaves. Benchmark trial current_distortion+current_loop_lag@959466553
@@ -641,15 +641,13 @@ def _held_out_with(nominal: Nominal, effects: frozenset[Effect],
     from the pair's point it left 919, and the diagnosis's own search found 909. What the
     lag adds is the second figure, less than the noise lets anyone name.
     """
-    from station.diagnosis.diagnose import transplanted  # noqa: PLC0415
-    from station.diagnosis.fit import held_out, polish  # noqa: PLC0415
+    from station.diagnosis.diagnose import polished_from  # noqa: PLC0415
+    from station.diagnosis.fit import held_out  # noqa: PLC0415
 
     result = _fitted_with(nominal, effects)
     if effects and larger is not None and larger.model.spec.effects > effects:
         with threadpool_limits(limits=1, user_api="blas"):
-            nested = polish(result.model, transplanted(result.model, larger))
-        if nested.chi2 < result.chi2:
-            result = nested
+            result = polished_from(result, larger) or result
     return held_out(result)
 
 
