@@ -160,9 +160,14 @@ def measure() -> list[BenchRecord]:
     detectable = [t for t in trials if t.detectable]
     hidden = [t for t in trials if not t.detectable]
     for t in trials:  # every miss, reproducible from its label (Case(cls, seed))
-        if t.score < 1.0 and REFUSED not in t.doc:
+        if REFUSED in t.doc:
+            continue
+        if t.score < 1.0:
             kind = "miss" if t.detectable else "below detection"
             print(f"{kind}: {describe(t)}", file=sys.stderr, flush=True)
+        elif t.case.cls.control and t.doc["mismatch"]:
+            # Scored 1 (no id), yet counted against the controls' mismatch figure.
+            print(f"false alarm: {describe(t)}", file=sys.stderr, flush=True)
     records: list[BenchRecord] = []
     for cls in CLASSES:
         mine = [t for t in detectable if t.case.cls == cls]
