@@ -89,8 +89,6 @@ def _share_without(trials: list[Trial], key: str) -> float:
             if trials else 1.0)
 
 
-
-
 def _alone(trials: list[Trial], root: Path) -> list[tuple[float, bool]]:
     """Seconds to diagnose each of a spread sample again, alone on every core, and
     whether it gave the answer the one-process diagnosis gave."""
