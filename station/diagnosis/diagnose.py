@@ -74,7 +74,6 @@ from station.diagnosis.axes import (
 )
 from station.diagnosis.fit import (
     SCREEN_HELD,
-    TOURNAMENT_NFEV,
     Fit,
     HeldOut,
     ParameterJudgement,
@@ -87,6 +86,7 @@ from station.diagnosis.fit import (
     judge_parameters,
     polish,
     polish_all,
+    polished_on,
     rank_passed,
     screen,
     sigmas,
@@ -236,6 +236,10 @@ NOMINAL_KEEP = 4
 three of them, and of those below, are polished)."""
 SPLIT_KEEP = 2
 """...and as ranked with the gain errors' difference fitted (``fit.SCREEN_HELD``)."""
+NOMINAL_SHORT_NFEV = 12
+"""Evaluations of the short polish that ranks the nominal fit's diverse grid points: the
+one fit every gain is reported against, made once or twice per diagnosis, keeps the
+longer look that ``fit.TOURNAMENT_NFEV`` gave up for the search's many models."""
 FINALISTS = 2
 """A larger model's starts polished in full after the short tournament (``best_of``)."""
 SWAPPED_FINALISTS = 1
@@ -653,7 +657,8 @@ def _from_grid(model: Model, run: Mapper) -> Fit:
     if diverse:
         # A short polish of each, then the full one from the best: ranked before any
         # polish, a chain whose modes sit a little off loses to one with none in band.
-        tried = sorted(polish_all(model, refined, TOURNAMENT_NFEV, run), key=lambda f: f.chi2)
+        tried = sorted(polish_all(model, refined, NOMINAL_SHORT_NFEV, run),
+                       key=lambda f: f.chi2)
         refined = [f.params for f in tried[:NOMINAL_KEEP - 1]]
     return fit(model, refined, keep=NOMINAL_KEEP - 1, max_nfev=80, run=run)
 
@@ -1300,7 +1305,7 @@ def polished_from(smaller: Fit, larger: Fit) -> Fit | None:
 def _finish_job(obs: Observations, nominal_chi2: float, unfinished: Fit) -> Candidate | None:
     """``unfinished`` polished on from its point (``Search.finished``); the candidate when
     that fits better, else None."""
-    result = polish(Model(unfinished.model.spec, obs), unfinished.params.copy())
+    result = polished_on(unfinished)
     return candidate_of(obs, nominal_chi2, result) if result.chi2 < unfinished.chi2 else None
 
 

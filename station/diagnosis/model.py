@@ -653,15 +653,22 @@ _T = TypeVar("_T")
 
 
 class _Memo(Generic[_T]):
-    """The last two values of a piece of the model that reads only a few parameters.
+    """The last few values of a piece of the model that reads only a few parameters.
 
     A finite-difference Jacobian moves one parameter at a time, so every column finds
     all but the pieces that parameter enters as the base point left them: the sensor's
     response with a drifting clock, the currents, the chain's transfer are then made
-    once per Jacobian instead of once per column. Two entries: the base point's, and
-    the column's that moved it. A parameter that enters a kept piece must be among its
-    keys (the ``*_KEYS`` above), or the piece goes stale: a test compares a model with
-    every group against one made afresh for each evaluation.
+    once per Jacobian instead of once per column. A parameter that enters a kept piece
+    must be among its keys (the ``*_KEYS`` above), or the piece goes stale: a test
+    compares a model with every group against one made afresh for each evaluation.
+
+    The value asked for again last is kept first: the point a Jacobian is taken at,
+    whose pieces every column that does not move them asks for. A value made afresh (a
+    column that moves the piece's parameters) goes in behind it, so that a run of such
+    columns pushes out only each other. Kept as the two made last, the base's value was
+    gone after two such columns in a row (the sensor's filter, a friction's levels) and
+    made again for the next column: on development friction@5700 a third of the
+    sensor's and the friction's pieces were made again so.
     """
 
     def __init__(self, index: NDArray[np.intp]) -> None:
@@ -670,12 +677,20 @@ class _Memo(Generic[_T]):
 
     def get(self, p: NDArray[np.float64], compute: Callable[[], _T]) -> _T:
         key = p[self.index].tobytes()
-        for known, value in self.entries:
+        for i, (known, value) in enumerate(self.entries):
             if known == key:
+                if i:
+                    self.entries.insert(0, self.entries.pop(i))
                 return value
         value = compute()
-        self.entries = [(key, value), *self.entries[:1]]
+        self.entries.insert(1 if self.entries else 0, (key, value))
+        del self.entries[MEMO_ENTRIES:]
         return value
+
+
+MEMO_ENTRIES = 3
+"""Values each ``_Memo`` keeps: the one asked for again last, and the two made last (two
+points evaluated in turn, as a trust region tries its steps, are then both kept)."""
 
 
 _BAND = 3

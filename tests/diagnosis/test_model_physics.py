@@ -25,6 +25,7 @@ from station.analysis.pipeline import measure, tangential_signal
 from station.analysis.segments import ChainDecay
 from station.core import Effect
 from station.diagnosis import diagnose, observations
+from station.diagnosis import fit as fit_module
 from station.diagnosis.diagnose import (
     GRID_EXACT,
     GRID_SHARED,
@@ -63,6 +64,7 @@ from station.diagnosis.fit import (
     held_out,
     jacobian,
     polish,
+    polished_on,
     rank_passed,
     resting,
     screen,
@@ -79,10 +81,12 @@ from station.diagnosis.groups import (
     segment_delays,
 )
 from station.diagnosis.model import (
+    FRICTION_KEYS,
     FRICTION_SMOOTHING_MAX,
     GRID,
     GROUP_BLOCKS,
     MIN_CLOCK_PPM,
+    SENSOR_KEYS,
     ChainKind,
     Model,
     ModelSpec,
@@ -1173,6 +1177,37 @@ def test_a_polish_goes_on_where_the_trust_regions_svd_does_not_converge(
     assert polished.chi2 < chi2_start
 
 
+def test_a_polish_going_on_from_a_stopped_one_reuses_its_jacobian_to_the_same_answer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A tournament's stages go on from fits that stopped on their evaluation budget:
+    the Jacobian each stopped with is the one the next stage's solver asks for first.
+    Given it, the next stage must end exactly where making it again ends, with one
+    Jacobian fewer."""
+    timeline, _ = _clean(15)
+    made: list[int] = []
+    original = fit_module.jacobian
+
+    def counted(model: Model, p: np.ndarray) -> np.ndarray:
+        made.append(1)
+        return original(model, p)
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        model = Model(ModelSpec(ChainKind.BELT), observe(timeline))
+        (_, start), *_ = screen(model, nominal_starts(model))
+        stopped = polish(model, start, max_nfev=3)
+        assert not stopped.converged
+        monkeypatch.setattr(fit_module, "jacobian", counted)
+        again = polish(model, stopped.params, max_nfev=6)
+        made_again = len(made)
+        made.clear()
+        going_on = polished_on(stopped, max_nfev=6)
+    assert len(made) == made_again - 1
+    np.testing.assert_array_equal(going_on.params, again.params)
+    np.testing.assert_array_equal(going_on.jacobian, again.jacobian)
+    assert going_on.chi2 == again.chi2
+
+
 def test_a_chain_grid_passed_once_for_every_linear_group_ranks_as_each_group_alone() -> None:
     """The first passes over a belt's grid are made once for all of ``GRID_SHARED`` (one
     linear design per point, from a model holding every one of them): each group must
@@ -1454,13 +1489,51 @@ def test_a_model_keeping_its_pieces_between_evaluations_gives_what_a_fresh_model
     span = np.where(np.isfinite(high - low), np.minimum(high - low, 1.0), 1.0)
     rng = np.random.default_rng(7)
     points = [np.clip(kept.layout.start() + 0.1 * span * rng.standard_normal(span.size),
-                      low + 1e-6, high - 1e-6) for _ in range(3)]
+                      low + 1e-6, high - 1e-6) for _ in range(4)]
     fresh = _Fresh(kept)
     with threadpool_limits(limits=1, user_api="blas"):
-        for p in [*points, points[0]]:  # back to a point two others have passed
+        # Back to a point three others have passed (forgotten), then to one two others
+        # have passed (still kept, behind them).
+        for p in [*points, points[0], points[2]]:
             assert np.array_equal(kept.residuals(p), fresh.residuals(p))
             assert np.array_equal(jacobian(kept, p), jacobian(fresh, p))
             assert np.array_equal(kept.linear_design(p)[1], fresh.linear_design(p)[1])
+
+
+@pytest.mark.parametrize(("effects", "piece", "keys", "moving"), [
+    ({Effect.SENSOR_CLOCK_DRIFT}, "_load_motion", SENSOR_KEYS, 4),
+    ({Effect.SENSOR_CLOCK_DRIFT, Effect.FRICTION}, "friction_torque",
+     (*SENSOR_KEYS, *FRICTION_KEYS), 7),
+])
+def test_a_jacobian_makes_a_kept_piece_once_for_each_point_that_moves_it(
+        effects: set[Effect], piece: str, keys: tuple[str, ...], moving: int) -> None:
+    """A piece of the model kept between evaluations (``_Memo``: the sensor's response,
+    the friction on the load's velocity) is made once at a Jacobian's base point, and of
+    its columns only by those that move the piece's own parameters (both sides of
+    each). Those columns come in runs: the sensor's filter's two, then the friction's
+    levels and smoothing with the drifting clock's, five in a row. Kept as the two made
+    last, the base's value was gone after two of them and made again for the column
+    after."""
+    obs, _ = _observed(Effect.FLUX_HARMONICS, 63)
+    model = Model(ModelSpec(chain_for(obs.metadata.gear_ratio), effects=frozenset(effects)),
+                  obs)
+    made: list[int] = []
+    original = getattr(model, piece)
+
+    def counted(p: np.ndarray) -> Any:
+        made.append(1)
+        return original(p)
+
+    setattr(model, piece, counted)
+    p = model.layout.start()
+    reads = {i for name in keys if model.layout.has(name)
+             for i in range(model.layout.size)[model.layout.slices[name]]}
+    assert len(reads & set(model.motion_index().tolist())) == moving
+    with threadpool_limits(limits=1, user_api="blas"):
+        model.residuals(p)
+        assert len(made) == 1
+        jacobian(model, p)
+    assert len(made) == 1 + 2 * moving
 
 
 @pytest.mark.parametrize("eps", [5.0, 0.3, 1e-2, 1e-4])  # rad/s, against a swing of ±1.1
