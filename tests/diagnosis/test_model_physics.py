@@ -1492,8 +1492,8 @@ def test_a_model_keeping_its_pieces_between_evaluations_gives_what_a_fresh_model
                       low + 1e-6, high - 1e-6) for _ in range(4)]
     fresh = _Fresh(kept)
     with threadpool_limits(limits=1, user_api="blas"):
-        # Back to a point three others have passed (forgotten), then to one two others
-        # have passed (still kept, behind them).
+        # Back to points others have passed since: whatever is still kept of them must
+        # be what the point itself gives.
         for p in [*points, points[0], points[2]]:
             assert np.array_equal(kept.residuals(p), fresh.residuals(p))
             assert np.array_equal(jacobian(kept, p), jacobian(fresh, p))
