@@ -87,11 +87,13 @@ from station.diagnosis.model import (
     GROUP_BLOCKS,
     MIN_CLOCK_PPM,
     SENSOR_KEYS,
+    SETTLED_SCALE,
     ChainKind,
     Model,
     ModelSpec,
     Motion,
     _cell_means,
+    _cell_means_made,
     chain_for,
     saturation_shapes,
     saturation_slopes,
@@ -773,6 +775,27 @@ def test_coulomb_friction_has_settled_at_every_hold_so_it_is_never_a_drag() -> N
     assert np.max(np.abs(slope)) * slowest < 1e-4
     concealed = _concealed_friction()
     assert concealed.significant
+
+
+def test_friction_responds_only_in_segments_where_it_has_a_slope_and_there_as_made_whole(
+) -> None:
+    """Segments whose load never nears a stop have no friction slope and are skipped in
+    the response to a change of motion (the step's basis, a Jacobian's stacked points):
+    the others must come out as the whole product makes them, to the bit."""
+    fitted = _concealed_friction().larger.fit
+    model = fitted.model
+    slope = model.motion(fitted.params).friction_slope.copy()
+    slope[::2] = 0.0  # every other segment settled, whatever this fit's were
+    assert np.any(slope[1::2])
+    rng = np.random.default_rng(7)
+    k = model.jw.shape[-1]
+    change = rng.normal(size=model.jw.shape) + 1j * rng.normal(size=model.jw.shape)
+    basis = np.eye(2 * k)[:, None, :k].astype(np.complex128)  # the step's, every segment
+    stacked = np.stack([slope, 0.5 * slope])  # a Jacobian's points
+    for slopes, x in ((slope, change), (stacked, change), (slope, basis)):
+        quick = model.friction_response(slopes, x)
+        assert np.array_equal(quick, model._friction_response(slopes, x, model.jw))
+        assert not np.any(quick[..., ::2, :])
 
 
 def test_friction_is_evaluated_on_the_whole_measured_velocity_orders_above_8_included(
@@ -1569,6 +1592,30 @@ def test_friction_on_the_grid_is_its_mean_over_each_step_so_a_crossing_moves_it_
                 step = (point - offset) % GRID
                 assert band[offset + 1, step] == pytest.approx(
                     numeric[step], rel=1e-4, abs=1e-6 / eps)
+
+
+@pytest.mark.parametrize("margin", [1.0001, 1.5, 40.0])  # times SETTLED_SCALE·ε
+def test_rows_whose_load_never_nears_a_stop_are_taken_as_settled_to_the_bit(
+        margin: float) -> None:
+    """A friction fit's rows are mostly segments whose load keeps turning one way far from
+    zero speed, and only the others are made in full: a shortcut that moved a mean or a
+    slope by an ulp would move every Jacobian column that differences ε."""
+    x = 2 * np.pi * np.arange(GRID) / GRID
+    eps = 3e-3
+    swing = 0.2 * np.sin(x) + 0.05 * np.cos(3 * x)
+    floor = margin * SETTLED_SCALE * eps - float(np.min(swing))  # lowest point at the margin
+    rows = np.stack([floor + swing, -(floor + swing),  # settled, either way
+                     0.1 + swing, swing, 1e-4 * swing])  # near, through and about zero
+    quick, full = _cell_means(rows, eps), _cell_means_made(rows, eps)
+    for shape, reference in zip(quick, full, strict=True):
+        assert shape.shape == reference.shape
+        assert np.array_equal(shape, reference)
+    # The settled rows are what the shortcut gives: a sign, its square and no slope.
+    assert np.array_equal(quick[0][:2], np.array([[1.0], [-1.0]]) * np.ones((2, GRID)))
+    assert not quick[2][:2].any() and not quick[3][:2].any()
+    # Any leading shape, as the Jacobian stacks its points.
+    stacked = _cell_means(np.stack([rows, rows[::-1]]), eps)
+    assert np.array_equal(stacked[2][0], quick[2])
 
 
 @pytest.mark.parametrize("smoothing", [0.1, 1e-3])  # of the slowest mean load speed
