@@ -55,6 +55,7 @@ from drivers.modbus_map import (
 from station.analysis.commanded import CommandTiming
 from station.core import Axis, Effect, LoadKind
 from station.errors import DeviceError, InputError
+from station.physics.params import UnitParams
 from station.recording import RecordingMetadata, SimulatedClock
 from station.serials import Serial, parse_serial
 from station.sim.bench import SimBench, SimBenchConfig
@@ -103,6 +104,9 @@ class SimSettings:
     noise_ug: float | None = None  # sensor noise density; None: the unit's own
     seed: int = 0
     faults: tuple[Fault, ...] = ()  # injected, in simulated time since power-on
+    # A unit of the wide population (``station.sim.population``) on the fixture instead
+    # of the serial's own: calibrated under its own serial, with its own load.
+    drawn: UnitParams | None = None
 
 
 DEFAULT_GUARD_S = 0.02
@@ -465,7 +469,7 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
             settings = spec.sim
             sim_bench = stack.enter_context(SimBench(SimBenchConfig(
                 serial=settings.unit or serial.label,
-                load=settings.load,
+                load=settings.load if settings.drawn is None else settings.drawn.load,
                 effects=settings.effects,
                 seed=settings.seed,
                 channel=channel,
@@ -477,6 +481,7 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
                 modbus_unit=(spec.modbus.endpoint.unit if spec.modbus is not None
                              else DEFAULT_UNIT_ID),
                 faults=settings.faults,
+                unit=settings.drawn,
             )))
         drive = stack.enter_context(_open_drive(spec, network, sim_bench))
         sensor = stack.enter_context(CanopenSensor(network, spec.sensor_node))

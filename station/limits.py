@@ -58,6 +58,23 @@ def _worst(*values: float) -> float:
     return math.nan if any(math.isnan(v) for v in values) else max(values)
 
 
+def bound_checks(limits: Limits, trims: Trims) -> tuple[LimitCheck, ...]:
+    """The recipe's bounds on each trim: what the drive may be given at all."""
+    bound = limits.offset_bound_mA
+    return (
+        _within(LimitName.OFFSET_A, trims.offset_a_mA, -bound, bound, "mA"),
+        _within(LimitName.OFFSET_B, trims.offset_b_mA, -bound, bound, "mA"),
+        _within(LimitName.GAIN_A, trims.gain_a, limits.gain_min, limits.gain_max, _GAIN),
+        _within(LimitName.GAIN_B, trims.gain_b, limits.gain_min, limits.gain_max, _GAIN),
+    )
+
+
+def trims_within(limits: Limits, trims: Trims) -> bool:
+    """Whether a recipe with these limits may store ``trims`` (a unit whose optimum lies
+    outside must fail, whatever else it does)."""
+    return all(check.passed for check in bound_checks(limits, trims))
+
+
 def estimate_checks(
     limits: Limits, estimate: TrimEstimate, stored: Trims
 ) -> tuple[LimitCheck, ...]:
@@ -65,14 +82,10 @@ def estimate_checks(
 
     ``stored`` are the trims as the drive would hold them (whole units).
     """
-    bound = limits.offset_bound_mA
     sigma = estimate.sigma
     checks = [
         LimitCheck(LimitName.ESTIMATE, None, None, None, "", True, estimate.method.value),
-        _within(LimitName.OFFSET_A, stored.offset_a_mA, -bound, bound, "mA"),
-        _within(LimitName.OFFSET_B, stored.offset_b_mA, -bound, bound, "mA"),
-        _within(LimitName.GAIN_A, stored.gain_a, limits.gain_min, limits.gain_max, _GAIN),
-        _within(LimitName.GAIN_B, stored.gain_b, limits.gain_min, limits.gain_max, _GAIN),
+        *bound_checks(limits, stored),
         _within(LimitName.OFFSET_SIGMA, _worst(sigma.offset_a_mA, sigma.offset_b_mA), None,
                 limits.max_offset_sigma_mA, "mA"),
         _within(LimitName.GAIN_SIGMA, _worst(sigma.gain_a, sigma.gain_b), None,
@@ -88,6 +101,15 @@ def estimate_checks(
     else:
         checks.append(_within(LimitName.FIT_R2, r2, limits.min_fit_r_squared, None, ""))
     return tuple(checks)
+
+
+def clipping_check(clipped: int, received: int) -> LimitCheck:
+    """How many measured samples sat at the sensor's full scale: never judged (no recipe
+    sets a limit on it), always shown, so that no estimate comes silently from clipped
+    holds."""
+    note = (f"{clipped} of {received} samples at full scale, left out of the fits" if clipped
+            else "no sample at full scale")
+    return LimitCheck(LimitName.CLIPPED, float(clipped), None, None, "samples", None, note)
 
 
 def unsupported(reason: str) -> LimitCheck:

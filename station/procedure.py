@@ -71,6 +71,7 @@ from station.errors import (
     StationError,
 )
 from station.limits import (
+    clipping_check,
     estimate_checks,
     ripple_checks,
     summary,
@@ -211,6 +212,8 @@ class _Calibration:
         self.electrical_hz = self.recipe.motion.electrical_hz
         self.capture: FrameCapture | None = None
         self.record_before: CalibrationRecord | None = None
+        self.clipped = 0  # measured samples at the sensor's full scale, and all of them
+        self.received = 0
         self.eeprom_touched = False  # a store was sent: the EEPROM may differ from before
 
     # -- the whole run ------------------------------------------------------------------------
@@ -359,7 +362,8 @@ class _Calibration:
         self.observer.step(Step.DONE, run.verdict.value if run.verdict else "")
 
     def _judge(self, checks: Sequence[LimitCheck]) -> None:
-        self.run_record.limits = tuple(checks)
+        checks = (*checks, clipping_check(self.clipped, self.received))
+        self.run_record.limits = checks
         self.run_record.verdict = verdict_for(checks)
         self.run_record.reason = summary(checks)
 
@@ -412,6 +416,7 @@ class _Calibration:
         motion.run(holds)
         timeline = self.capture.timeline(mark, self.commands)
         self._check_sensor(timeline)
+        self._count_clipping(timeline, phase)
         measured, rejected = measure(
             timeline, AnalysisOptions(settle_periods=float(motion_spec.settle_periods))
         )
@@ -435,6 +440,20 @@ class _Calibration:
                 f"{phase.value}: point {_trims_text(point)} not measured ({reasons})"
             )
         return found
+
+    def _count_clipping(self, timeline: Timeline, phase: Phase) -> None:
+        """Say when holds clipped: the analysis leaves those samples out of its fits, and
+        an estimate must never come from clipped holds without a word: of 200 units of
+        the population benchmark, 133 clipped at ±4 g and only the three that the sensor
+        check stopped said so."""
+        clipped = timeline.losses.saturated_samples
+        received = int(timeline.sensor_valid.sum())
+        self.clipped += clipped
+        self.received += received
+        if clipped:
+            self.run_record.warnings.append(
+                f"{phase.value}: {clipped} of {received} samples clipped at the sensor's "
+                f"±{self.recipe.motion.sensor_range_g} g, left out of the fits")
 
     def _check_sensor(self, timeline: Timeline) -> None:
         """Refuse holds whose samples are not acceleration (saturated, unplugged, stuck)."""

@@ -15,6 +15,7 @@ import re
 import subprocess
 import sys
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +24,17 @@ import pytest
 from drivers.base import DriveState, decode_statusword
 from station import benches
 from station.cli import main
+from station.core import LoadKind
+from station.limits import trims_within
+from station.physics.optimum import optimal_trims
 from station.procedure import Step
 from station.recipes import load_recipe
 from station.recording import read_metadata
+from station.runs import LimitName, Run, Verdict
 from station.serials import parse_serial
 from station.service import Station, calibrate
 from station.sim.bench import SimBench
+from station.sim.population import LineKind, draw_line_unit
 from station.sim.record import describe_unit
 from station.store import Store
 
@@ -140,6 +146,65 @@ def test_a_limit_the_unit_cannot_meet_fails_the_unit_and_is_recorded(
         (run,) = store.history("SN123")
     assert run.verdict is not None and run.verdict.value == "fail"
     assert run.recipe.name == "hushed" and run.recipe.sha256 == load_recipe(recipe).sha256
+
+
+def _drawn_station(db: Path, seed: int) -> tuple[Station, str]:
+    """A station whose simulated fixture holds the wide population's unit of ``seed``."""
+    unit = draw_line_unit(seed).unit
+    sim = replace(benches.SIM_SPEC.sim or benches.SimSettings(), drawn=unit)
+    return Station(db, replace(benches.SIM_SPEC, sim=sim), "bench"), unit.serial
+
+
+def test_a_unit_of_the_wide_population_lands_on_its_plants_optimum(db: Path) -> None:
+    # Seed 1000: a belt with load friction and an eccentric rotor, unlike any serial's unit.
+    assert draw_line_unit(1000).unit.load is LoadKind.BELT
+    station, serial = _drawn_station(db, 1000)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.PASS, run.reason
+    truth = optimal_trims(draw_line_unit(1000).unit)
+    got = run.trims_estimated
+    assert got is not None
+    assert abs(got.offset_a_mA - truth.offset_a_mA) < 1.0
+    assert abs(got.offset_b_mA - truth.offset_b_mA) < 1.0
+    assert abs(got.gain_a - truth.gain_a) < 10.0
+    with Store(db) as store:
+        (kept,) = store.history(serial)
+    assert kept.serial == serial
+    # Its baseline grazed the range once: said, and shown in the table.
+    assert _clipped(kept) == (1, 1)
+
+
+def test_holds_that_clipped_are_said_in_the_warnings_and_the_limit_table(db: Path) -> None:
+    # Population seed 553880387: a light disk whose untrimmed ripple clips ±4 g; it passed
+    # with nothing in its record saying so before the station counted clipped samples.
+    station, serial = _drawn_station(db, 553880387)
+    run = calibrate(station, serial).run
+    shown, said = _clipped(run)
+    assert shown == said > 100
+
+
+def _clipped(run: Run) -> tuple[int, int]:
+    """Samples at full scale as the limit table shows them (a count judged by no limit),
+    and as the warnings say them."""
+    (check,) = [c for c in run.limits if c.name is LimitName.CLIPPED]
+    assert check.passed is None and check.value is not None
+    assert ("left out of the fits" in check.note) == (check.value > 0)
+    said = [w for w in run.warnings if "clipped at the sensor's ±4 g" in w]
+    return int(check.value), sum(int(w.split(": ")[1].split()[0]) for w in said)
+
+
+def test_a_unit_whose_amplifier_no_recipe_can_trim_fails_on_the_bound_untouched(
+    db: Path,
+) -> None:
+    # Seed 41: a disk whose phase A is 367 mA off, beyond the default recipe's ±250 mA.
+    line = draw_line_unit(41)
+    assert line.kind is LineKind.OUT_OF_BOUNDS
+    assert not trims_within(load_recipe("default").limits, optimal_trims(line.unit))
+    station, serial = _drawn_station(db, 41)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.FAIL
+    assert LimitName.OFFSET_A in {check.name for check in run.failed_limits}
+    assert not run.trims_stored and run.trims_after is None
 
 
 def test_trims_outside_the_recipe_bounds_are_never_written(

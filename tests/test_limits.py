@@ -26,6 +26,7 @@ from station.limits import (
     reduction_db,
     ripple_checks,
     summary,
+    trims_within,
     unsupported,
     verdict_for,
     worst_r_squared,
@@ -150,6 +151,13 @@ def test_a_trim_outside_the_recipe_bounds_fails_its_check(
 def test_trims_exactly_at_the_bounds_pass() -> None:
     checks = estimate_checks(LIMITS, coherent(), Trims(250.0, -250.0, 11500.0, 8500.0))
     assert all(c.passed is True for c in checks)
+
+
+def test_trims_within_the_bounds_are_exactly_those_whose_bound_checks_pass() -> None:
+    assert trims_within(LIMITS, Trims(250.0, -250.0, 11500.0, 8500.0))
+    for outside in (Trims(250.5, 0.0), Trims(0.0, -251.0), Trims(0.0, 0.0, 11501.0, 8499.0),
+                    Trims(math.nan, 0.0)):
+        assert not trims_within(LIMITS, outside)
 
 
 def test_sigma_limits_fail_on_the_worse_of_the_two_trims() -> None:

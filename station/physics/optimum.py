@@ -29,6 +29,11 @@ OFFSET_STEP_mA = 20.0
 SPLIT_STEP = 200.0
 """Finite-difference step for the gain split (1/10000)."""
 
+DEFAULT_STEPS = np.array([OFFSET_STEP_mA, OFFSET_STEP_mA, SPLIT_STEP])
+SMALLEST_STEPS = np.array([1.0, 1.0, 10.0])
+"""Near the optimum the differences shrink with the steps, down to these: still far above
+the steady harmonics' rounding."""
+
 TOLERANCE_mA = 0.01
 TOLERANCE_GAIN = 0.1
 MAX_ITERATIONS = 12
@@ -121,9 +126,9 @@ def optimal_trims(
 ) -> Trims:
     """Trims that null H1 and minimise |H2| over the split gain_a + gain_b = 20000.
 
-    Newton on finite differences (steps of 20 mA and 200 gain units) from the
-    nominal trims, keeping the Jacobian while it converges (chord steps) and
-    refreshing it when it stops doing so.
+    Newton on finite differences (steps of 20 mA and 200 gain units, shrinking with
+    the iteration's own steps) from the nominal trims, keeping the Jacobian while it
+    converges (chord steps) near where it was taken, and refreshing it otherwise.
     """
 
     def harmonics(u: NDArray[np.float64]) -> tuple[complex, complex]:
@@ -131,11 +136,12 @@ def optimal_trims(
                              electrical_hz=electrical_hz, sync_period_s=sync_period_s)
         return complex(h[0]), complex(h[1])
 
-    def jacobian(u: NDArray[np.float64], base: tuple[complex, complex]) -> tuple[
+    def jacobian(u: NDArray[np.float64], base: tuple[complex, complex],
+                 steps: NDArray[np.float64] = DEFAULT_STEPS) -> tuple[
             NDArray[np.complex128], NDArray[np.complex128]]:
         jac1 = np.empty(3, dtype=np.complex128)
         jac2 = np.empty(3, dtype=np.complex128)
-        for i, step in enumerate((OFFSET_STEP_mA, OFFSET_STEP_mA, SPLIT_STEP)):
+        for i, step in enumerate(steps.tolist()):
             probe = u.copy()
             probe[i] += step
             p1, p2 = harmonics(probe)
@@ -157,8 +163,17 @@ def optimal_trims(
         if size <= 1.0:
             return _trims(u)
         base = harmonics(u)
-        if size > 0.5 * previous:
-            jac1, jac2 = jacobian(u, base)
+        # A chord step is kept only near where its Jacobian was taken: from the nominal
+        # trims a rough unit's first step spans 200 mA and 1,000 gain units, and the chord
+        # then alternated about its optimum shrinking by half a step each time (population
+        # seed 170: 14 iterations where 12 were allowed).
+        far = bool(np.any(np.abs(delta) > DEFAULT_STEPS))
+        if far or size > 0.5 * previous:
+            # Differences on the scale the iteration now moves at: a rough unit's H2 can
+            # curve within the default steps, and their slope then overshot the optimum
+            # twice over, in a cycle that never closed (population seed 576: detent, flux,
+            # reluctance and a lagging loop).
+            jac1, jac2 = jacobian(u, base, np.clip(np.abs(delta), SMALLEST_STEPS, DEFAULT_STEPS))
         previous = size
     # A truth that is not converged would silently mislead every comparison with it.
     raise RuntimeError(f"optimal trims for {unit.serial} did not converge: last {_trims(u)}")

@@ -65,6 +65,18 @@ class SimBenchConfig:
     modbus_unit: int = DEFAULT_UNIT_ID
     modbus_watchdog_s: float = DEFAULT_WATCHDOG_S  # 0: no communication watchdog
     faults: tuple[Fault, ...] = ()  # injected, in simulated time since power-on
+    # A unit given whole (``station.sim.population``) in place of the serial's own: its
+    # load, effects and noise are its own, so those above must be left as they are.
+    unit: UnitParams | None = None
+
+    def __post_init__(self) -> None:
+        if self.unit is None:
+            return
+        if self.unit.serial != self.serial:
+            raise ValueError(f"the bench's unit is {self.unit.serial}, not {self.serial}")
+        if (self.effects is not None or self.noise_density_ug is not None
+                or self.load is not self.unit.load):
+            raise ValueError("a unit given whole brings its own load, effects and noise")
 
 
 @dataclass(frozen=True)
@@ -110,7 +122,7 @@ class SimBench:
             raise ValueError(f"drive and sensor cannot share node-ID {config.drive_node}")
         self.config = config
         serial = parse_serial(config.serial)
-        self.unit: UnitParams = derive_unit(
+        self.unit: UnitParams = config.unit or derive_unit(
             serial.label,
             load=config.load,
             effects=config.effects,

@@ -19,8 +19,10 @@ drawn log-uniform, so each decade is as likely.
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from enum import IntEnum
+from dataclasses import dataclass
+from enum import IntEnum, StrEnum
 
 import numpy as np
 
@@ -43,7 +45,8 @@ from station.physics.params import (
 )
 from station.serials import parse_serial
 
-__all__ = ["POPULATION_SERIAL_BASE", "belt_mode_motor_held_hz", "draw_unit"]
+__all__ = ["POPULATION_SERIAL_BASE", "LineKind", "LineUnit", "belt_mode_motor_held_hz",
+           "draw_line_unit", "draw_unit"]
 
 POPULATION_SERIAL_BASE = 900000
 """Population units are labelled SN900000-SN999999, apart from the serial-derived ones tests use."""
@@ -81,6 +84,7 @@ class _Group(IntEnum):
     ROTOR_ECCENTRICITY = 15
     SENSOR_NONLINEARITY = 16
     SENSOR_TILT = 17
+    LINE = 18
 
 
 def _stream(seed: int, group: _Group) -> np.random.Generator:
@@ -379,3 +383,73 @@ def draw_unit(
         rated_current_mA=RATED_CURRENT_mA,
         microsteps=MICROSTEPS,
     )
+
+
+# --------------------------------------------------------------------------- a line's units
+class LineKind(StrEnum):
+    """What a production line sends to the station, as the population benchmark draws it."""
+
+    ORDINARY = "ordinary"  # the amplifier's errors anywhere in their usual range
+    ROUGH = "rough"  # errors at the top of their range, detent and flux harmonics on
+    OUT_OF_BOUNDS = "out_of_bounds"  # an offset or a gain no recipe may trim: must FAIL
+
+
+LINE_SHARES = {LineKind.ORDINARY: 0.8, LineKind.ROUGH: 0.1, LineKind.OUT_OF_BOUNDS: 0.1}
+"""How often each kind comes down the line in the benchmark's draw."""
+LINE_EFFECTS = (0.2, 0.4, 0.4)
+"""Shares of units with none, one and two effects of the vocabulary (the clock apart)."""
+CLOCK_SHARE = 0.5
+"""Units whose sensor runs on its own clock (``_clock``: 100-500 ppm either way)."""
+ROUGH_OFFSET_mA = (150.0, 240.0)
+ROUGH_GAIN_ERROR = (0.06, 0.14)
+BEYOND_OFFSET_mA = (280.0, 450.0)
+"""An offset the trims cannot cancel within any recipe's ±250 mA."""
+BEYOND_GAIN_ERROR = (0.2, 0.3)
+"""A gain error whose trim falls outside 8500-11500 (1/10000) either way."""
+
+
+@dataclass(frozen=True)
+class LineUnit:
+    """One unit of the line: the plant, and what kind of unit it was drawn as."""
+
+    seed: int
+    kind: LineKind
+    unit: UnitParams
+
+
+def draw_line_unit(seed: int) -> LineUnit:
+    """A unit as a line of many products would send it, always the same for the same seed:
+    disk or belt, none to two effects of the vocabulary with or without a drifting sensor
+    clock, and now and then a rough unit or one whose amplifier no recipe can trim.
+
+    The choices draw from their own stream (``_Group.LINE``), so the unit's constants are
+    those ``draw_unit`` gives the same seed."""
+    rng = _stream(seed, _Group.LINE)
+    kinds = list(LINE_SHARES)
+    kind = kinds[int(rng.choice(len(kinds), p=[LINE_SHARES[k] for k in kinds]))]
+    load = LoadKind.BELT if rng.random() < 0.5 else LoadKind.DISK
+    vocabulary = [e for e in Effect if e is not Effect.SENSOR_CLOCK_DRIFT]
+    count = int(rng.choice(len(LINE_EFFECTS), p=LINE_EFFECTS))
+    chosen: set[Effect] = {vocabulary[int(i)]
+                           for i in rng.choice(len(vocabulary), count, replace=False)}
+    if rng.random() < CLOCK_SHARE:
+        chosen.add(Effect.SENSOR_CLOCK_DRIFT)
+    if kind is LineKind.ROUGH:
+        chosen |= {Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS}
+    unit = draw_unit(seed, load=load, effects=frozenset(chosen))
+    amplifier = unit.amplifier
+    if kind is LineKind.ROUGH:
+        split = _u(rng, *ROUGH_GAIN_ERROR) * _sign(rng)
+        amplifier = dataclasses.replace(
+            amplifier, offset_a_mA=_u(rng, *ROUGH_OFFSET_mA) * _sign(rng),
+            offset_b_mA=_u(rng, *ROUGH_OFFSET_mA) * _sign(rng),
+            gain_error_a=split, gain_error_b=-split)
+    elif kind is LineKind.OUT_OF_BOUNDS:
+        beyond = _u(rng, *BEYOND_OFFSET_mA) * _sign(rng)
+        if rng.random() < 0.5:
+            amplifier = dataclasses.replace(amplifier, offset_a_mA=beyond)
+        else:
+            error = _u(rng, *BEYOND_GAIN_ERROR) * _sign(rng)
+            amplifier = dataclasses.replace(amplifier, gain_error_a=error,
+                                            gain_error_b=-error)
+    return LineUnit(seed, kind, dataclasses.replace(unit, amplifier=amplifier))

@@ -14,6 +14,7 @@ from station.physics.motor import torque
 from station.physics.optimum import optimal_trims, steady_harmonics
 from station.physics.params import UnitParams, derive_unit
 from station.physics.plant import DriveCommand, Plant
+from station.sim.population import draw_line_unit
 
 M = 256
 T = 0.001
@@ -203,3 +204,17 @@ def test_harmonics_at_a_frequency_off_the_sync_grid_still_span_whole_periods() -
                                    orders=(1, 4))
     assert abs(compensated[1]) > 0.1
     assert abs(compensated[0]) < 1e-4 * abs(compensated[1])
+
+
+@pytest.mark.parametrize("seed", [170, 576])
+def test_a_rough_unit_far_from_the_nominal_trims_still_converges(seed: int) -> None:
+    # Population seed 170: offsets near 210 mA, a gain split near 1,000 units, detent, flux
+    # harmonics and a coupling. Chord steps on the Jacobian taken at the nominal trims
+    # alternated about the optimum, halving each time, and ran out of iterations. Seed 576
+    # (a belt; detent, flux, reluctance, a lagging loop): slopes over 200 gain units
+    # overshot the split's optimum twice over, in a cycle that never closed.
+    unit = draw_line_unit(seed).unit
+    found = optimal_trims(unit)
+    assert abs(found.offset_a_mA) > 150 and abs(found.gain_a - GAIN_UNITY) > 500
+    h = steady_harmonics(unit, found)
+    assert abs(h[0]) < 1e-3

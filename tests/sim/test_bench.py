@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from station.core import Effect
+from station.core import Effect, LoadKind
 from station.errors import DeviceError, InputError
 from station.sim.bench import SimBench, SimBenchConfig
+from station.sim.population import draw_line_unit, draw_unit
 from tests.sim import Frame, Station, running, unique_config
 
 """Well under the ≥ 3000/s the bench is built for: this host is shared, the test must not flake."""
@@ -51,6 +52,30 @@ def test_effects_in_the_configuration_override_the_units_own(tmp_path: Path) -> 
     chosen = frozenset({Effect.FRICTION})
     with SimBench(unique_config(serial="SN5", effects=chosen), state_dir=tmp_path) as bench:
         assert bench.unit.effects == chosen
+
+
+def test_a_unit_given_whole_is_the_plant_and_the_drive_answers_with_its_serial(
+    tmp_path: Path,
+) -> None:
+    unit = draw_line_unit(11).unit
+    with running(tmp_path, serial=unit.serial, load=unit.load, unit=unit) as (bench, station):
+        assert bench.unit is unit
+        assert station.drive.sdo[0x1018][4].raw == unit.serial_number
+
+
+@pytest.mark.parametrize("clash", [
+    {"serial": "SN123"},
+    {"effects": frozenset({Effect.FRICTION})},
+    {"noise_density_ug": 150.0},
+    {"load": LoadKind.BELT},
+], ids=["serial", "effects", "noise", "load"])
+def test_a_unit_given_whole_refuses_settings_that_would_contradict_it(
+    clash: dict[str, object],
+) -> None:
+    unit = draw_unit(5, load=LoadKind.DISK, effects=frozenset())
+    settings: dict[str, object] = {"serial": unit.serial, "unit": unit, **clash}
+    with pytest.raises(ValueError, match="unit"):
+        unique_config(**settings)
 
 
 def test_close_is_safe_twice_and_a_closed_bench_stays_closed(tmp_path: Path) -> None:

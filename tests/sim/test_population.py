@@ -12,10 +12,19 @@ import numpy as np
 import pytest
 
 from station.core import Effect, LoadKind, Trims
+from station.limits import trims_within
+from station.physics.optimum import optimal_trims
 from station.physics.params import UnitParams, UnnamedEffect
 from station.physics.plant import DriveCommand, Plant
+from station.recipes import load_recipe
 from station.serials import parse_serial
-from station.sim.population import belt_mode_motor_held_hz, draw_unit
+from station.sim.population import (
+    LINE_SHARES,
+    LineKind,
+    belt_mode_motor_held_hz,
+    draw_line_unit,
+    draw_unit,
+)
 
 M = 256
 T = 0.001
@@ -272,3 +281,54 @@ def test_the_truth_is_json_with_every_constant_and_effect() -> None:
     assert [e["id"] for e in truth["effects"]] == sorted(e.value for e in Effect)
     assert len(truth["out_of_vocabulary"]) == len(UnnamedEffect)
     assert {f.name for f in fields(unit.sensor)} <= set(truth["sensor"])
+
+
+# --------------------------------------------------------------------------- a line's units
+LINE = [draw_line_unit(seed) for seed in range(400)]
+
+
+def test_a_line_unit_is_the_same_for_the_same_seed_and_is_that_seeds_population_unit() -> None:
+    for line in LINE[:20]:
+        assert draw_line_unit(line.seed) == line
+        drawn = draw_unit(line.seed, load=line.unit.load, effects=line.unit.effects)
+        # The line changes the amplifier of a rough or untrimmable unit, nothing else.
+        assert replace(line.unit, amplifier=drawn.amplifier) == drawn
+        if line.kind is LineKind.ORDINARY:
+            assert line.unit == drawn
+
+
+def test_a_line_sends_every_kind_both_loads_and_every_effect_alone_and_combined() -> None:
+    for kind, share in LINE_SHARES.items():
+        seen = sum(line.kind is kind for line in LINE) / len(LINE)
+        assert abs(seen - share) < 0.06, (kind, seen)
+    assert {line.unit.load for line in LINE} == set(LoadKind)
+    clock = Effect.SENSOR_CLOCK_DRIFT
+    assert 0.4 < sum(clock in line.unit.effects for line in LINE) / len(LINE) < 0.6
+    ordinary = [line.unit.effects - {clock} for line in LINE if line.kind is LineKind.ORDINARY]
+    for effect in set(Effect) - {clock}:
+        assert frozenset({effect}) in ordinary, effect
+        assert any(effect in e and len(e) == 2 for e in ordinary), effect
+    assert frozenset() in ordinary
+
+
+def test_rough_units_carry_large_errors_and_strong_ripple_effects() -> None:
+    rough = [line.unit for line in LINE if line.kind is LineKind.ROUGH]
+    assert rough
+    for unit in rough:
+        assert {Effect.DETENT_TORQUE, Effect.FLUX_HARMONICS} <= unit.effects
+        amp = unit.amplifier
+        assert min(abs(amp.offset_a_mA), abs(amp.offset_b_mA)) >= 150.0
+        assert amp.gain_error_a == -amp.gain_error_b and abs(amp.gain_error_a) >= 0.06
+
+
+def test_a_unit_drawn_out_of_bounds_has_its_optimum_beyond_the_recipes_bounds() -> None:
+    limits = {name: load_recipe(name).limits for name in ("default", "paper")}
+    beyond = [line.unit for line in LINE if line.kind is LineKind.OUT_OF_BOUNDS][:6]
+    ordinary = [line.unit for line in LINE if line.kind is LineKind.ORDINARY][:6]
+    assert len(beyond) == 6
+    for unit in beyond:
+        truth = optimal_trims(unit)
+        assert not any(trims_within(lim, truth) for lim in limits.values()), truth
+    for unit in ordinary:
+        truth = optimal_trims(unit)
+        assert all(trims_within(lim, truth) for lim in limits.values()), truth
