@@ -18,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from station.core import GAIN_UNITY, Trims
+from station.core import GAIN_LIMITS, GAIN_UNITY, Trims, offset_limit_mA
 from station.dsp import h1_then_h2_null, harmonic_phasors
 from station.physics.params import UnitParams
 from station.physics.plant import DriveCommand, Plant, modal_analysis
@@ -151,12 +151,25 @@ def optimal_trims(
 
     if amplitude_mA <= 0:
         raise ValueError("the optimum is defined for a positive phase current amplitude")
-    u = np.zeros(3)
+    # From where the amplifier's own errors put the optimum (eq. (16): no net offset,
+    # equal fundamentals); the other effects move it from there, and Newton follows. From
+    # the nominal trims a unit whose phases differ by a quarter was first sent 14,000 gain
+    # units the wrong way (population seed 956725264).
+    amp = unit.amplifier
+    split = (GAIN_UNITY * (amp.gain_error_b - amp.gain_error_a)
+             / (2.0 + amp.gain_error_a + amp.gain_error_b))
+    u = np.array([-amp.offset_a_mA, -amp.offset_b_mA, split])
     base = harmonics(u)
     jac1, jac2 = jacobian(u, base)
     previous = math.inf
+    # Where the drive can hold trims at all (ICD.md §2): a step the affine model takes
+    # beyond it lands the plant in nonsense (population seed 956725264: a first step of
+    # 14,000 gain units, to gain −4,560, and no way back).
+    reach = offset_limit_mA(unit.rated_current_mA)
+    room = min(GAIN_UNITY - GAIN_LIMITS[0], GAIN_LIMITS[1] - GAIN_UNITY)
+    low, high = np.array([-reach, -reach, -room]), np.array([reach, reach, room])
     for _ in range(MAX_ITERATIONS):
-        delta = h1_then_h2_null(base[0], base[1], jac1, jac2)
+        delta = np.clip(u + h1_then_h2_null(base[0], base[1], jac1, jac2), low, high) - u
         u = u + delta
         size = max(abs(delta[0]) / TOLERANCE_mA, abs(delta[1]) / TOLERANCE_mA,
                    abs(delta[2]) / TOLERANCE_GAIN)

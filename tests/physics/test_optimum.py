@@ -206,15 +206,17 @@ def test_harmonics_at_a_frequency_off_the_sync_grid_still_span_whole_periods() -
     assert abs(compensated[0]) < 1e-4 * abs(compensated[1])
 
 
-@pytest.mark.parametrize("seed", [170, 576])
+@pytest.mark.parametrize("seed", [170, 576, 956725264])
 def test_a_rough_unit_far_from_the_nominal_trims_still_converges(seed: int) -> None:
     # Population seed 170: offsets near 210 mA, a gain split near 1,000 units, detent, flux
     # harmonics and a coupling. Chord steps on the Jacobian taken at the nominal trims
     # alternated about the optimum, halving each time, and ran out of iterations. Seed 576
     # (a belt; detent, flux, reluctance, a lagging loop): slopes over 200 gain units
-    # overshot the split's optimum twice over, in a cycle that never closed.
+    # overshot the split's optimum twice over, in a cycle that never closed. Seed
+    # 956725264 (phase gains 27 % apart, beyond any recipe's bounds): the first step from
+    # the nominal trims went 14,000 gain units the wrong way.
     unit = draw_line_unit(seed).unit
     found = optimal_trims(unit)
-    assert abs(found.offset_a_mA) > 150 and abs(found.gain_a - GAIN_UNITY) > 500
+    assert abs(found.offset_a_mA) > 100 and abs(found.gain_a - GAIN_UNITY) > 500
     h = steady_harmonics(unit, found)
     assert abs(h[0]) < 1e-3
