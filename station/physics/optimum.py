@@ -127,8 +127,9 @@ def optimal_trims(
     """Trims that null H1 and minimise |H2| over the split gain_a + gain_b = 20000.
 
     Newton on finite differences (steps of 20 mA and 200 gain units, shrinking with
-    the iteration's own steps) from the nominal trims, keeping the Jacobian while it
-    converges (chord steps) near where it was taken, and refreshing it otherwise.
+    the iteration's own steps) from the optimum of the amplifier's errors alone, within
+    the trims the drive can hold, keeping the Jacobian while it converges (chord steps)
+    near where it was taken, and refreshing it otherwise.
     """
 
     def harmonics(u: NDArray[np.float64]) -> tuple[complex, complex]:
@@ -176,10 +177,10 @@ def optimal_trims(
         if size <= 1.0:
             return _trims(u)
         base = harmonics(u)
-        # A chord step is kept only near where its Jacobian was taken: from the nominal
-        # trims a rough unit's first step spans 200 mA and 1,000 gain units, and the chord
-        # then alternated about its optimum shrinking by half a step each time (population
-        # seed 170: 14 iterations where 12 were allowed).
+        # A chord step is kept only near where its Jacobian was taken: when Newton started
+        # at the nominal trims a rough unit's first step spanned 200 mA and 1,000 gain
+        # units, and the chord then alternated about its optimum shrinking by half a step
+        # each time (population seed 170: 14 iterations where 12 were allowed).
         far = bool(np.any(np.abs(delta) > DEFAULT_STEPS))
         if far or size > 0.5 * previous:
             # Differences on the scale the iteration now moves at: a rough unit's H2 can
