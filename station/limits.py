@@ -23,6 +23,9 @@ _GAIN = "1/10000"
 
 def _within(name: LimitName, value: float, low: float | None, high: float | None,
             unit: str) -> LimitCheck:
+    # Plain Python values: numpy's booleans are not ``False`` to ``is False``, so a
+    # failed check on a numpy value would pass every verdict that asks it.
+    value = float(value)
     passed = (low is None or value >= low) and (high is None or value <= high)
     return LimitCheck(name, value, low, high, unit, passed)
 
@@ -103,12 +106,18 @@ def estimate_checks(
     return tuple(checks)
 
 
-def clipping_check(clipped: int, received: int) -> LimitCheck:
-    """How many measured samples sat at the sensor's full scale: never judged (no recipe
-    sets a limit on it), always shown, so that no estimate comes silently from clipped
-    holds."""
+def clipping_check(clipped: int, received: int, *, remeasured: int = 0,
+                   left_out: int = 0) -> LimitCheck:
+    """How many measured samples sat at the sensor's full scale, and what the station did
+    about it: never judged (a clipped hold is measured again or left out, as the recipe
+    allows, and the estimate is judged on its own), always shown, so that no estimate
+    comes silently from clipped holds."""
     note = (f"{clipped} of {received} samples at full scale, left out of the fits" if clipped
             else "no sample at full scale")
+    if remeasured:
+        note += f"; {remeasured} hold(s) measured again nearer the centre"
+    if left_out:
+        note += f"; {left_out} point(s) left out"
     return LimitCheck(LimitName.CLIPPED, float(clipped), None, None, "samples", None, note)
 
 

@@ -78,7 +78,7 @@ from station.limits import (
     unsupported,
     verdict_for,
 )
-from station.recipes import CoherentSweep, MagnitudeSweep, PaperSweep, Recipe
+from station.recipes import Clipping, CoherentSweep, MagnitudeSweep, PaperSweep, Recipe
 from station.recording import RecordingMetadata, RecordingWriter
 from station.runner import Motion
 from station.runs import LimitCheck, Ripple, Run, Verdict
@@ -215,6 +215,8 @@ class _Calibration:
         self.clipped = 0  # measured samples at the sensor's full scale, and all of them
         self.received = 0
         self.eeprom_touched = False  # a store was sent: the EEPROM may differ from before
+        self.remeasured = 0  # holds measured again nearer their centre because they clipped
+        self.left_out: set[Trims] = set()  # points whose holds clipped beyond the recipe's share
 
     # -- the whole run ------------------------------------------------------------------------
 
@@ -362,10 +364,16 @@ class _Calibration:
         self.observer.step(Step.DONE, run.verdict.value if run.verdict else "")
 
     def _judge(self, checks: Sequence[LimitCheck]) -> None:
-        checks = (*checks, clipping_check(self.clipped, self.received))
-        self.run_record.limits = checks
-        self.run_record.verdict = verdict_for(checks)
-        self.run_record.reason = summary(checks)
+        checks = (*checks, clipping_check(self.clipped, self.received, remeasured=self.remeasured,
+                                          left_out=len(self.left_out)))
+        run = self.run_record
+        run.limits = checks
+        run.verdict = verdict_for(checks)
+        run.reason = summary(checks)
+        if run.verdict is Verdict.FAIL and self.left_out:
+            # The likely cause, in words the operator can act on.
+            run.reason += (f"; {len(self.left_out)} point(s) left out because the ripple "
+                           f"clipped the sensor's ±{self.recipe.motion.sensor_range_g} g")
 
     # -- steps --------------------------------------------------------------------------------
 
@@ -391,7 +399,74 @@ class _Calibration:
             raise SelfCheckFailed(sensor.name, "; ".join(result.problems))
 
     def _measure(self, motion: Motion, points: list[Trims], phase: Phase, *,
-                 lead_periods: float = 0.0, dwell_periods: int | None = None) -> list[Measured]:
+                 centre: Trims | None = None, lead_periods: float = 0.0,
+                 dwell_periods: int | None = None) -> list[Measured]:
+        """Hold each point and return what it measured, clipped holds dealt with.
+
+        Where the recipe allows, a hold clipped beyond its share is measured
+        again nearer ``centre`` (its design's centre, where the ripple is lower),
+        and left out when it still clips or cannot move; ``centre`` None (a
+        baseline, a verification) moves nothing.
+        """
+        found = self._hold(motion, points, phase, lead_periods=lead_periods,
+                           dwell_periods=dwell_periods)
+        policy = self.recipe.clipping
+        if policy is None:
+            return found
+        used = [m for m in found if not self._clips(m, policy)]
+        clipped = [m.segment.trims for m in found if self._clips(m, policy)]
+        shrink = policy.step_shrink
+        for _ in range(policy.retries):
+            if centre is None or not clipped:
+                break
+            again = [p for p in dict.fromkeys(self._nearer(centre, p, shrink) for p in clipped)
+                     if p != centre and p not in self.left_out]
+            self._leave_out([p for p in clipped if self._nearer(centre, p, shrink) not in again],
+                            phase, "it cannot be moved nearer its design's centre")
+            if not again:
+                clipped = []
+                break
+            self.run_record.warnings.append(
+                f"{phase.value}: {len(again)} point(s) clipped at the sensor's "
+                f"±{self.recipe.motion.sensor_range_g} g in more than "
+                f"{policy.max_share:.0%} of their samples: measured again at {shrink:g} of "
+                f"their step from {_trims_text(centre)}, where the ripple is lower")
+            self.remeasured += len(again)
+            found = self._hold(motion, again, phase, dwell_periods=dwell_periods)
+            used += [m for m in found if not self._clips(m, policy)]
+            clipped = [m.segment.trims for m in found if self._clips(m, policy)]
+        self._leave_out(clipped, phase, f"still clipped after {policy.retries} smaller step(s)"
+                        if centre is not None else "a point nothing can replace")
+        return used
+
+    @staticmethod
+    def _clips(m: Measured, policy: Clipping) -> bool:
+        return m.saturated > policy.max_share * max(1, m.segment.samples)
+
+    def _nearer(self, centre: Trims, point: Trims, shrink: float) -> Trims:
+        """``point`` moved towards ``centre``: ``shrink`` of its step remains."""
+        def towards(c: float, p: float) -> float:
+            return c + shrink * (p - c)
+
+        moved = Trims(towards(centre.offset_a_mA, point.offset_a_mA),
+                      towards(centre.offset_b_mA, point.offset_b_mA),
+                      towards(centre.gain_a, point.gain_a), towards(centre.gain_b, point.gain_b))
+        return within_drive_range(moved, self.recipe.product.rated_current_mA)
+
+    def _leave_out(self, points: Sequence[Trims], phase: Phase, why: str) -> None:
+        """Points whose holds clipped beyond the recipe's share: not used, and said."""
+        for point in points:
+            if point in self.left_out:
+                continue
+            self.left_out.add(point)
+            self.run_record.warnings.append(
+                f"{phase.value}: point {_trims_text(point)} left out: clipped at the sensor's "
+                f"±{self.recipe.motion.sensor_range_g} g in more than "
+                f"{self.recipe.clipping.max_share if self.recipe.clipping else 0:.0%} of its "
+                f"samples ({why})")
+
+    def _hold(self, motion: Motion, points: list[Trims], phase: Phase, *,
+              lead_periods: float = 0.0, dwell_periods: int | None = None) -> list[Measured]:
         """Hold each point, then demodulate what the bus carried meanwhile.
 
         Segments are matched to the plan by the trims the drive reported in
@@ -399,6 +474,7 @@ class _Calibration:
         yields no segment is left out with a warning; the estimators say
         whether what remains suffices.
         """
+
         motion_spec = self.recipe.motion
         dwell = motion_spec.dwell_periods if dwell_periods is None else dwell_periods
         holds = holds_for(
@@ -515,7 +591,7 @@ class _Calibration:
                 points = gain_sweep(fits[0].vertex, fits[1].vertex, sweep.gain_min,
                                     sweep.gain_max, sweep.gain_points)
             self.observer.step(Step.SWEEP, f"{phase.value}: {len(points)} points")
-            measured = self._measure(motion, points, phase)
+            measured = self._measure(motion, points, phase, centre=_middle(points))
             self.observer.step(Step.ESTIMATE, axis.value)
             fit, warnings = fit_parabola([m.point() for m in measured], axis)
             self.run_record.warnings.extend(warnings)
@@ -538,7 +614,7 @@ class _Calibration:
                 points = axis_sweep(centre, axis, span, sweep.points, rated)
                 self.observer.step(Step.SWEEP, f"round {number}/{len(rounds)}: {axis.value} "
                                    f"±{span} around {_trims_text(centre)}")
-                measured = self._measure(motion, points, phase)
+                measured = self._measure(motion, points, phase, centre=centre)
                 fit, warnings = fit_parabola([m.point() for m in measured], axis)
                 if number == len(rounds):
                     self.run_record.warnings.extend(warnings)
@@ -556,13 +632,16 @@ class _Calibration:
         for number, (offset_step, gain_step) in enumerate(rounds, start=1):
             design = star(centre, offset_step, gain_step, rated)
             # The centre of the first round is the baseline, measured already.
-            todo = [p for p in design if number > 1 or p != centre or not baseline]
+            # A point left out for clipping would clip again.
+            todo = [p for p in design if (number > 1 or p != centre or not baseline)
+                    and p not in self.left_out]
             self.observer.step(
                 Step.SWEEP,
                 f"round {number}/{len(rounds)}: ±{offset_step} mA, ±{gain_step} around "
                 f"{_trims_text(centre)}",
             )
-            points.extend(m.point() for m in self._measure(motion, todo, Phase.SWEEP_STAR))
+            points.extend(m.point() for m in self._measure(motion, todo, Phase.SWEEP_STAR,
+                                                                centre=centre))
             self.observer.step(Step.ESTIMATE, f"round {number}: {len(points)} points")
             estimate = coherent_estimate(points)
             centre = within_drive_range(estimate.trims, rated)
@@ -617,7 +696,8 @@ class _Calibration:
         with Motion(self.drive, self.session.clock,
                     on_progress=lambda done, total, _h: self.observer.progress(done, total)
                     ) as motion:
-            measured = self._measure(
+            # The unit as it ships: measured whatever it clips (counted and said).
+            measured = self._hold(
                 motion, [trims], Phase.VERIFY,
                 lead_periods=self.recipe.motion.spin_up_periods,
                 dwell_periods=self.recipe.verification.dwell_periods,
@@ -659,6 +739,13 @@ def _from_vertices(fits: Sequence[ParabolaFit]) -> TrimEstimate:
         sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
         parabolas=(a, b, g),
     )
+
+
+def _middle(points: Sequence[Trims]) -> Trims:
+    """The middle of an axis sweep: where its clipped ends move towards."""
+    n = len(points)
+    return Trims(sum(p.offset_a_mA for p in points) / n, sum(p.offset_b_mA for p in points) / n,
+                 sum(p.gain_a for p in points) / n, sum(p.gain_b for p in points) / n)
 
 
 def _at_vertex(centre: Trims, fit: ParabolaFit) -> Trims:

@@ -125,6 +125,24 @@ class MagnitudeSweep:
 
 
 @dataclass(frozen=True)
+class Clipping:
+    """What the station may do when a hold clips at the sensor's full scale.
+
+    A hold with more than ``max_share`` of its samples at full scale is not
+    used: the analysis leaves clipped samples out, and what is left of a
+    waveform cut at its peaks no longer pins its harmonics down. Such a point
+    is measured again ``step_shrink`` of the way from its design's centre (a
+    star's centre, an axis sweep's middle), where the ripple is lower, at most
+    ``retries`` times; then it is left out and the estimators say whether the
+    rest suffices. A recipe without this table does nothing but say it.
+    """
+
+    max_share: float
+    step_shrink: float
+    retries: int
+
+
+@dataclass(frozen=True)
 class SelfCheck:
     """The standstill check that the sensor is mounted and quiet before a run."""
 
@@ -175,6 +193,7 @@ class Recipe:
     text: str
     sha256: str
     magnitude_sweep: MagnitudeSweep | None = None  # for benches that see no drive angle
+    clipping: Clipping | None = None  # None: clipped holds are used, and said
 
     @property
     def angle_free(self) -> bool:
@@ -325,6 +344,18 @@ def _read_sweep(
     return sweep
 
 
+def _read_clipping(t: TomlTable | None) -> Clipping | None:
+    if t is None:
+        return None
+    clipping = Clipping(
+        max_share=t.real("max_share", ge=0, lt=1),
+        step_shrink=t.real("step_shrink", gt=0, lt=1),
+        retries=t.integer("retries", 0, 10),
+    )
+    t.finish()
+    return clipping
+
+
 def _read_self_check(t: TomlTable) -> SelfCheck:
     self_check = SelfCheck(
         standstill_s=t.real("standstill_s", gt=0, le=10),
@@ -400,6 +431,7 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
     motion = _read_motion(root.table("motion"), rated)
     sweep = _read_sweep(root.table("sweep"), method, rated)
     magnitude_sweep = _read_magnitude_sweep(root.optional_table("magnitude_sweep"), rated)
+    clipping = _read_clipping(root.optional_table("clipping"))
     self_check = _read_self_check(root.table("self_check"))
     verification = _read_verification(root.table("verification"))
     limits = _read_limits(root.table("limits"), rated)
@@ -423,6 +455,7 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
         text=text,
         sha256=hashlib.sha256(text.encode("utf-8")).hexdigest(),
         magnitude_sweep=magnitude_sweep,
+        clipping=clipping,
     )
 
 

@@ -6,6 +6,7 @@ import math
 from dataclasses import replace
 from importlib.resources import files
 
+import numpy as np
 import pytest
 
 from station.analysis.estimate import (
@@ -285,6 +286,17 @@ def test_unsupported_estimate_is_a_failed_estimate_check_with_the_reason() -> No
 # --- the ripple -------------------------------------------------------------------------------
 # Each harmonic is judged on its own: after-limit, and a reduction of at least 6 dB
 # (20·log10(before/after)) unless it was within its after-limit before calibration.
+
+
+def test_a_ripple_beyond_its_limit_fails_whether_it_is_a_python_or_a_numpy_number() -> None:
+    # The plant's optimum comes as numpy values: a numpy False is not ``False``, and a
+    # population benchmark counted units left with 0.54 m/s² of H2 as ones to pass.
+    after = Ripple(np.float64(0.01), np.float64(0.54))
+    checks = by_name(ripple_checks(LIMITS, Ripple(np.float64(9.0), np.float64(17.0)), after))
+    assert checks[LimitName.H2_AFTER].passed is False
+    assert type(checks[LimitName.H2_AFTER].value) is float
+    assert verdict_for(checks.values()) is Verdict.FAIL
+    assert summary(list(checks.values())).startswith("failed h2_after_mps2")
 
 
 def test_ripple_checks_pass_a_unit_brought_within_the_after_limits() -> None:

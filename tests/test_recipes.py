@@ -100,7 +100,7 @@ def test_paper_recipe_follows_the_paper() -> None:
     assert recipe.motion.electrical_hz == 20.0 and recipe.motion.amplitude_mA == 1000
     motion = recipe.motion
     assert (motion.spin_up_periods, motion.settle_periods, motion.dwell_periods) == (4, 4, 16)
-    assert motion.sensor_range_g == 8
+    assert motion.sensor_range_g == 16
     # One second per point at 20 Hz, as the paper's sweeps are sampled.
     assert recipe.hold_periods() / recipe.motion.electrical_hz == 1.0
     assert recipe.sweep == PaperSweep(-500, 500, 11, 7000, 13000, 11)
@@ -112,7 +112,7 @@ def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> Non
     assert recipe.method is RecipeMethod.COHERENT
     assert recipe.sweep == CoherentSweep(offset_steps_mA=(100, 30, 10),
                                          gain_steps=(1000, 300, 100))
-    assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (8, 4)
+    assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (8, 16)
     assert recipe.hold_periods() == 12
     assert recipe.product == reference.product
     assert (recipe.self_check, recipe.verification) == (
@@ -312,6 +312,12 @@ RANGE_CASES: list[tuple[str, str, object]] = [
     ("limits", "min_fit_r_squared", 1.5),
     ("limits", "max_drift_offset_mA", 0),
     ("limits", "max_drift_gain", 0),
+    ("clipping", "max_share", -0.01),
+    ("clipping", "max_share", 1.0),
+    ("clipping", "step_shrink", 0),
+    ("clipping", "step_shrink", 1.0),
+    ("clipping", "retries", -1),
+    ("clipping", "retries", 11),
 ]
 
 
@@ -324,6 +330,29 @@ def test_value_out_of_range_is_refused_naming_the_field(
     problem = only_problem(data)
     assert problem.startswith(f"{table}.{key}: must be ")
     assert f"got {value!r}" in problem
+
+
+def test_shipped_recipes_act_on_clipping_at_the_widest_sensor_range() -> None:
+    for name in ("default", "paper"):
+        recipe = load_recipe(name)
+        assert recipe.motion.sensor_range_g == 16
+        assert recipe.clipping is not None
+        assert 0 < recipe.clipping.max_share < 0.1 and recipe.clipping.retries >= 1
+
+
+def test_a_recipe_without_a_clipping_table_only_says_what_clipped() -> None:
+    # Recipes written before the table existed still parse, and mean what they did then.
+    data = coherent()
+    del data["clipping"]
+    assert parse_recipe(to_toml(data), source=SOURCE).clipping is None
+
+
+def test_a_clipping_table_must_be_complete_and_holds_no_other_key() -> None:
+    data = coherent()
+    del data["clipping"]["retries"]
+    data["clipping"]["range_g"] = 8
+    assert set(problems(data)) == {"clipping.retries: missing",
+                                   "clipping.range_g: unknown key"}
 
 
 @pytest.mark.parametrize("value", [0, 1, 1.0, -0.1, 1.5])

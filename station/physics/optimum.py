@@ -46,8 +46,15 @@ _MAX_SETTLE_S = 5.0
 
 
 def _quiet(unit: UnitParams) -> UnitParams:
-    """The same unit with a perfect sensor (no noise): truth, not a measurement."""
-    return replace(unit, sensor=replace(unit.sensor, noise_density_ug=0.0))
+    """The same unit with a perfect sensor (no noise, sampling on the SYNC): truth, not a
+    measurement.
+
+    A drifting sample clock is the sensor's, not the plant's: sampled late on a
+    unit whose flux harmonics put 16 m/s² rms into orders 4-12, one repeated
+    sample per wrap leaked into orders 1 and 2 of a four-period window and moved
+    the optimum 43 mA away from the plant's own (population seed 335014438).
+    """
+    return replace(unit, sensor=replace(unit.sensor, noise_density_ug=0.0, clock_drift_ppm=0.0))
 
 
 def settle_time_s(unit: UnitParams, amplitude_mA: float) -> float:

@@ -36,7 +36,12 @@ from station.core import (
 )
 from station.physics import kernel as k_
 from station.physics.kernel import TABLE_SIZE
-from station.physics.motor import QUARTER_PITCH_ELECTRICAL, MotorParams, magnetic_stiffness
+from station.physics.motor import (
+    QUARTER_PITCH_ELECTRICAL,
+    MotorParams,
+    magnetic_stiffness,
+    rest_angle,
+)
 from station.physics.params import (
     AmplifierParams,
     FrictionParams,
@@ -317,6 +322,7 @@ class Plant:
         # Angles, speeds and currents carried between periods, and what a period reports.
         self._state = np.zeros(k_.N_STATE)
         self._command = np.zeros(k_.N_COMMAND)
+        self._come_to_rest(rest_angle(motor))
         self._setup_torque(motor)
         self._setup_reshaping(motor)
         self._setup_amplifier(unit.amplifier)
@@ -517,6 +523,16 @@ class Plant:
 
     def sensor_lsb_mps2(self) -> float:
         return self._lsb
+
+    def _come_to_rest(self, theta: float) -> None:
+        """The mechanics at rest with the rotor at ``theta``: every compliance unloaded."""
+        thetas = [theta]
+        for ratio in self._chain.ratios:
+            thetas.append(ratio * thetas[-1])
+        state = self._state
+        state[k_.TH0], state[k_.THL] = thetas[0], thetas[-1]
+        if len(thetas) == 3:
+            state[k_.TH1] = thetas[1]
 
     # --------------------------------------------------------------- stepping
     def place_on_trajectory(self, command: DriveCommand) -> None:
