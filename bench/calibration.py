@@ -22,6 +22,10 @@ scale must say so in its warnings or reason; how many units clipped, and how man
 without a word, is counted per leg. Every miss is printed with its seed, which reproduces
 it.
 
+The same subset is calibrated again with the default recipe's holds shortened
+(``TRADE_OFF``): motion time against worst and RMS trim error and false fails, the
+curve on which a faster default would be chosen.
+
 ``STATION_BENCH_CALIBRATION_UNITS`` lowers the unit count for a quick look; the figures
 a note quotes come from the default.
 """
@@ -31,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import statistics
 import sys
 import tempfile
@@ -64,6 +69,17 @@ LEGS: dict[str, tuple[str, BenchSpec]] = {
     MODBUS: ("default", SIM_MODBUS_SPEC),
 }
 """Each leg: the recipe, and the bench it runs on."""
+TRADE_OFF: dict[str, dict[str, int]] = {
+    "holds8": {"motion.settle_periods": 3, "motion.dwell_periods": 5,
+               "verification.dwell_periods": 14},
+    "holds6": {"motion.settle_periods": 2, "motion.dwell_periods": 4,
+               "verification.dwell_periods": 10},
+    "holds5": {"motion.spin_up_periods": 2, "motion.settle_periods": 2,
+               "motion.dwell_periods": 3, "verification.dwell_periods": 8},
+}
+"""The trade-off curve: the default recipe with shorter holds (electrical periods settled
+and measured per point, and measured in the verification), on the subset, beside the
+default's own 12-period holds (4 + 8, a 20-period verification) on the same units."""
 WORST_OFFSET_mA, WORST_GAIN = 1.0, 10.0
 RMS_OFFSET_mA, RMS_GAIN = 0.3, 3.0
 MOTION_TARGET_S = {DEFAULT: 7.0, PAPER: math.inf, MODBUS: 15.0}
@@ -127,10 +143,27 @@ def plant_verdict(unit: UnitParams, recipe: Recipe) -> tuple[Trims, bool]:
     return truth, all(check.passed is not False for check in checks)
 
 
-def _calibrate_one(seed: int, leg: str) -> Outcome:
+def _recipe_variant(folder: Path, name: str, changes: dict[str, int]) -> Path:
+    """The default recipe under ``name`` with ``table.key`` values changed: a recipe file,
+    because that is what the station runs and what its records name."""
+    text = (Path(__file__).parents[1] / "recipes" / "default.toml").read_text(encoding="utf-8")
+    text = text.replace('name = "default"', f'name = "{name}"', 1)
+    for dotted, value in changes.items():
+        table, key = dotted.split(".")
+        section = re.search(rf"(?ms)^\[{table}\]\n.*?(?=^\[|\Z)", text)
+        assert section is not None, table
+        body, count = re.subn(rf"(?m)^{key} = [^#\n]*", f"{key} = {value} ", section.group(0))
+        assert count == 1, dotted
+        text = text[:section.start()] + body + text[section.end():]
+    path = folder / f"{name}.toml"
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _calibrate_one(seed: int, leg: str, recipe: str) -> Outcome:
     """One unit on one leg, from a fresh station home (fresh EEPROM, fresh database)."""
     line = draw_line_unit(seed)
-    recipe, bench = LEGS[leg]
+    bench = LEGS[leg][1] if leg in LEGS else SIM_SPEC
     assert bench.sim is not None  # every leg is a simulated bench
     spec = dataclasses.replace(bench, sim=dataclasses.replace(bench.sim, drawn=line.unit))
     try:
@@ -163,10 +196,14 @@ def _calibrate_one(seed: int, leg: str) -> Outcome:
 
 
 def _run_all(seeds: Sequence[int], subset: int) -> list[Outcome]:
-    jobs = [(seed, leg) for i, seed in enumerate(seeds) for leg in LEGS
-            if leg == DEFAULT or i < subset]
-    with ProcessPoolExecutor(max_workers=2) as pool:
-        return list(pool.map(_calibrate_one, *zip(*jobs, strict=True)))
+    with tempfile.TemporaryDirectory(prefix="station-bench-recipes-") as folder:
+        recipes = {leg: recipe for leg, (recipe, _bench) in LEGS.items()}
+        recipes |= {design: str(_recipe_variant(Path(folder), design, changes))
+                    for design, changes in TRADE_OFF.items()}
+        jobs = [(seed, leg, recipes[leg]) for i, seed in enumerate(seeds) for leg in recipes
+                if leg == DEFAULT or i < subset]
+        with ProcessPoolExecutor(max_workers=2) as pool:
+            return list(pool.map(_calibrate_one, *zip(*jobs, strict=True)))
 
 
 def _rms(values: Sequence[float]) -> float:
@@ -218,6 +255,30 @@ def _leg_records(leg: str, judged: list[Outcome]) -> list[BenchRecord]:
     ]
 
 
+def _trade_off_records(by_leg: dict[str, list[Outcome]]) -> list[BenchRecord]:
+    """Motion time against worst and RMS offset error, per hold design, on the subset's
+    units (the default's figures on those same units beside them)."""
+    shared = {o.line.seed for design in TRADE_OFF for o in by_leg[design]}
+    points = {DEFAULT: [o for o in by_leg[DEFAULT] if o.line.seed in shared]}
+    points |= {design: by_leg[design] for design in TRADE_OFF}
+    records = []
+    for design, outcomes in points.items():
+        judged = [o for o in outcomes if o.verdict != NO_TRUTH]
+        errors = [o.offset_error_mA for o in judged
+                  if o.should_pass and not math.isnan(o.offset_error_mA)]
+        records += [
+            BenchRecord(f"calibration_tradeoff_{design}_motion_s",
+                        _mean([o.motion_s for o in judged]), "s/unit", math.inf, Goal.AT_MOST),
+            BenchRecord(f"calibration_tradeoff_{design}_offset_error_max_mA",
+                        max(errors, default=math.nan), "mA", WORST_OFFSET_mA, Goal.AT_MOST),
+            BenchRecord(f"calibration_tradeoff_{design}_offset_error_rms_mA", _rms(errors),
+                        "mA", RMS_OFFSET_mA, Goal.AT_MOST),
+            BenchRecord(f"calibration_tradeoff_{design}_false_fails",
+                        float(sum(o.false_fail for o in judged)), "units", 0.0, Goal.AT_MOST),
+        ]
+    return records
+
+
 def measure(units: int | None = None, subset: int = SUBSET) -> list[BenchRecord]:
     count = _units() if units is None else units
     started = time.perf_counter()
@@ -236,8 +297,9 @@ def measure(units: int | None = None, subset: int = SUBSET) -> list[BenchRecord]
         elif o.should_pass and not o.offset_error_mA <= WORST_OFFSET_mA:
             print(f"off by more than {WORST_OFFSET_mA} mA: {o.describe()}", file=sys.stderr,
                   flush=True)
-    by_leg = {leg: [o for o in outcomes if o.leg == leg] for leg in LEGS}
+    by_leg = {leg: [o for o in outcomes if o.leg == leg] for leg in (*LEGS, *TRADE_OFF)}
     records = [r for leg in LEGS for r in _leg_records(leg, by_leg[leg])]
+    records += _trade_off_records(by_leg)
     # The paper's recipe against the default's on the units both calibrated.
     shared = {o.line.seed for o in by_leg[PAPER]}
     default_shared = [o.motion_s for o in by_leg[DEFAULT]

@@ -168,13 +168,13 @@ BAD_RECIPES = {
         lambda f: str(_variant(f, "table", ("[motion]\n", "[motor]\nx = 1\n\n[motion]\n"))),
         ("motor",)),
     "wrong-type": BadRecipe(
-        lambda f: str(_variant(f, "typed", ("sensor_range_g = 4", 'sensor_range_g = "4"'))),
+        lambda f: str(_variant(f, "typed", ("sensor_range_g = 16", 'sensor_range_g = "16"'))),
         ("motion.sensor_range_g",)),
     "bool-for-number": BadRecipe(
         lambda f: str(_variant(f, "boolean", ("dwell_periods = 8", "dwell_periods = true"))),
         ("motion.dwell_periods",)),
     "out-of-range": BadRecipe(
-        lambda f: str(_variant(f, "ranged", ("sensor_range_g = 4", "sensor_range_g = 3"))),
+        lambda f: str(_variant(f, "ranged", ("sensor_range_g = 16", "sensor_range_g = 3"))),
         ("motion.sensor_range_g",)),
     "not-finite": BadRecipe(
         lambda f: str(_variant(f, "infinite", ("electrical_hz = 20.0", "electrical_hz = inf"))),
