@@ -422,7 +422,7 @@ class _Calibration:
             again = [p for p in dict.fromkeys(self._nearer(centre, p, shrink) for p in clipped)
                      if p != centre and p not in self.left_out]
             self._leave_out([p for p in clipped if self._nearer(centre, p, shrink) not in again],
-                            phase, "it cannot be moved nearer its design's centre")
+                            phase, policy, "it cannot be moved nearer its design's centre")
             if not again:
                 clipped = []
                 break
@@ -435,7 +435,8 @@ class _Calibration:
             found = self._hold(motion, again, phase, dwell_periods=dwell_periods)
             used += [m for m in found if not self._clips(m, policy)]
             clipped = [m.segment.trims for m in found if self._clips(m, policy)]
-        self._leave_out(clipped, phase, f"still clipped after {policy.retries} smaller step(s)"
+        self._leave_out(clipped, phase, policy,
+                        f"still clipped after {policy.retries} smaller step(s)"
                         if centre is not None else "a point nothing can replace")
         return used
 
@@ -453,7 +454,8 @@ class _Calibration:
                       towards(centre.gain_a, point.gain_a), towards(centre.gain_b, point.gain_b))
         return within_drive_range(moved, self.recipe.product.rated_current_mA)
 
-    def _leave_out(self, points: Sequence[Trims], phase: Phase, why: str) -> None:
+    def _leave_out(self, points: Sequence[Trims], phase: Phase, policy: Clipping,
+                   why: str) -> None:
         """Points whose holds clipped beyond the recipe's share: not used, and said."""
         for point in points:
             if point in self.left_out:
@@ -461,9 +463,8 @@ class _Calibration:
             self.left_out.add(point)
             self.run_record.warnings.append(
                 f"{phase.value}: point {_trims_text(point)} left out: clipped at the sensor's "
-                f"±{self.recipe.motion.sensor_range_g} g in more than "
-                f"{self.recipe.clipping.max_share if self.recipe.clipping else 0:.0%} of its "
-                f"samples ({why})")
+                f"±{self.recipe.motion.sensor_range_g} g in more than {policy.max_share:.0%} "
+                f"of its samples ({why})")
 
     def _hold(self, motion: Motion, points: list[Trims], phase: Phase, *,
               lead_periods: float = 0.0, dwell_periods: int | None = None) -> list[Measured]:
@@ -474,7 +475,6 @@ class _Calibration:
         yields no segment is left out with a warning; the estimators say
         whether what remains suffices.
         """
-
         motion_spec = self.recipe.motion
         dwell = motion_spec.dwell_periods if dwell_periods is None else dwell_periods
         holds = holds_for(

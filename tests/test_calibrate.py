@@ -160,18 +160,22 @@ def _drawn_station(db: Path, seed: int) -> tuple[Station, str]:
     return Station(db, replace(benches.SIM_SPEC, sim=sim), "bench"), unit.serial
 
 
+def _assert_on_the_plants_optimum(run: Run, seed: int) -> None:
+    """The run's estimate within issue 16's 1 mA and 10 gain units of the plant's optimum."""
+    truth, got = optimal_trims(draw_line_unit(seed).unit), run.trims_estimated
+    assert got is not None
+    assert abs(got.offset_a_mA - truth.offset_a_mA) < 1.0
+    assert abs(got.offset_b_mA - truth.offset_b_mA) < 1.0
+    assert abs(got.gain_a - truth.gain_a) < 10.0
+
+
 def test_a_unit_of_the_wide_population_lands_on_its_plants_optimum(db: Path) -> None:
     # Seed 1000: a belt with load friction and an eccentric rotor, unlike any serial's unit.
     assert draw_line_unit(1000).unit.load is LoadKind.BELT
     station, serial = _drawn_station(db, 1000)
     run = calibrate(station, serial).run
     assert run.verdict is Verdict.PASS, run.reason
-    truth = optimal_trims(draw_line_unit(1000).unit)
-    got = run.trims_estimated
-    assert got is not None
-    assert abs(got.offset_a_mA - truth.offset_a_mA) < 1.0
-    assert abs(got.offset_b_mA - truth.offset_b_mA) < 1.0
-    assert abs(got.gain_a - truth.gain_a) < 10.0
+    _assert_on_the_plants_optimum(run, 1000)
     with Store(db) as store:
         (kept,) = store.history(serial)
     assert kept.serial == serial
@@ -191,11 +195,8 @@ def test_belt_units_pass_within_a_milliampere_of_their_plants_optimum(db: Path, 
     station, serial = _drawn_station(db, seed)
     run = calibrate(station, serial).run
     assert run.verdict is Verdict.PASS, run.reason
-    truth, got = optimal_trims(line.unit), run.trims_stored and run.trims_estimated
-    assert got
-    assert abs(got.offset_a_mA - truth.offset_a_mA) < 1.0
-    assert abs(got.offset_b_mA - truth.offset_b_mA) < 1.0
-    assert abs(got.gain_a - truth.gain_a) < 10.0
+    assert run.trims_stored
+    _assert_on_the_plants_optimum(run, seed)
 
 
 def test_a_recipe_without_a_clipping_policy_uses_clipped_holds_and_says_so(
@@ -225,12 +226,7 @@ def test_a_hold_clipped_beyond_its_share_is_measured_again_nearer_the_centre(
     assert again
     (check,) = [c for c in run.limits if c.name is LimitName.CLIPPED]
     assert "measured again nearer the centre" in check.note
-    truth = optimal_trims(draw_line_unit(1664852622).unit)
-    got = run.trims_estimated
-    assert got is not None
-    assert abs(got.offset_a_mA - truth.offset_a_mA) < 1.0
-    assert abs(got.offset_b_mA - truth.offset_b_mA) < 1.0
-    assert abs(got.gain_a - truth.gain_a) < 10.0
+    _assert_on_the_plants_optimum(run, 1664852622)
     # Its flux harmonics leave 0.54 m/s² of H2 at the optimum: a true FAIL, on that alone.
     assert run.verdict is Verdict.FAIL
     assert {c.name for c in run.failed_limits} == {LimitName.H2_AFTER}

@@ -601,6 +601,8 @@ UNBALANCE = (0.001, 0.003)
 No more than the rotor bearing's Coulomb friction (and a real rotor's
 unbalance is smaller still): a disabled rotor then creeps towards its low
 point instead of swinging there, which the sensor would see at standstill.
+Bearings without a Coulomb part (the wide population's) hold nothing, so the
+plant starts every rotor at rest where it settled (``motor.rest_angle``).
 """
 
 
