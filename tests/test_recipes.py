@@ -94,7 +94,7 @@ def test_both_shipped_recipes_are_available_and_default_is_one_of_them() -> None
 
 def test_paper_recipe_follows_the_paper() -> None:
     recipe = load_recipe("paper")
-    assert (recipe.name, recipe.version, recipe.method) == ("paper", "1", RecipeMethod.PAPER)
+    assert (recipe.name, recipe.version, recipe.method) == ("paper", "2", RecipeMethod.PAPER)
     assert recipe.product.rated_current_mA == 1000
     assert (recipe.product.microsteps, recipe.product.rotor_teeth) == (256, 50)
     assert recipe.motion.electrical_hz == 20.0 and recipe.motion.amplitude_mA == 1000
