@@ -219,11 +219,15 @@ def _units() -> int:
     return UNITS if raw is None else max(1, int(raw))
 
 
+def _estimated_good(outcomes: Sequence[Outcome]) -> list[Outcome]:
+    """The units that should pass and have an estimate: those accuracy is judged on (a good
+    unit without one, an ERROR, is a false fail, not an accuracy figure)."""
+    return [o for o in outcomes if o.should_pass and not math.isnan(o.offset_error_mA)]
+
+
 def _leg_records(leg: str, judged: list[Outcome]) -> list[BenchRecord]:
     outcomes = [o for o in judged if o.verdict != NO_TRUTH]
-    good = [o for o in outcomes if o.should_pass]
-    # A good unit without an estimate (an ERROR) is a false fail, not an accuracy figure.
-    measured = [o for o in good if not math.isnan(o.offset_error_mA)]
+    measured = _estimated_good(outcomes)
     offsets = [o.offset_error_mA for o in measured]
     gains = [o.gain_error for o in measured]
     return [
@@ -264,8 +268,7 @@ def _trade_off_records(by_leg: dict[str, list[Outcome]]) -> list[BenchRecord]:
     records = []
     for design, outcomes in points.items():
         judged = [o for o in outcomes if o.verdict != NO_TRUTH]
-        errors = [o.offset_error_mA for o in judged
-                  if o.should_pass and not math.isnan(o.offset_error_mA)]
+        errors = [o.offset_error_mA for o in _estimated_good(judged)]
         records += [
             BenchRecord(f"calibration_tradeoff_{design}_motion_s",
                         _mean([o.motion_s for o in judged]), "s/unit", math.inf, Goal.AT_MOST),

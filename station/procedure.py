@@ -413,8 +413,7 @@ class _Calibration:
         policy = self.recipe.clipping
         if policy is None:
             return found
-        used = [m for m in found if not self._clips(m, policy)]
-        clipped = [m.segment.trims for m in found if self._clips(m, policy)]
+        used, clipped = _unclipped(found, policy)
         shrink = policy.step_shrink
         for _ in range(policy.retries):
             if centre is None or not clipped:
@@ -432,17 +431,13 @@ class _Calibration:
                 f"{policy.max_share:.0%} of their samples: measured again at {shrink:g} of "
                 f"their step from {_trims_text(centre)}, where the ripple is lower")
             self.remeasured += len(again)
-            found = self._hold(motion, again, phase, dwell_periods=dwell_periods)
-            used += [m for m in found if not self._clips(m, policy)]
-            clipped = [m.segment.trims for m in found if self._clips(m, policy)]
+            kept, clipped = _unclipped(self._hold(motion, again, phase,
+                                                  dwell_periods=dwell_periods), policy)
+            used += kept
         self._leave_out(clipped, phase, policy,
                         f"still clipped after {policy.retries} smaller step(s)"
                         if centre is not None else "a point nothing can replace")
         return used
-
-    @staticmethod
-    def _clips(m: Measured, policy: Clipping) -> bool:
-        return m.saturated > policy.max_share * max(1, m.segment.samples)
 
     def _nearer(self, centre: Trims, point: Trims, shrink: float) -> Trims:
         """``point`` moved towards ``centre``: ``shrink`` of its step remains."""
@@ -739,6 +734,18 @@ def _from_vertices(fits: Sequence[ParabolaFit]) -> TrimEstimate:
         sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
         parabolas=(a, b, g),
     )
+
+
+def _unclipped(found: Sequence[Measured], policy: Clipping) -> tuple[list[Measured], list[Trims]]:
+    """The holds within the recipe's share of clipped samples, and the points of the rest."""
+    used: list[Measured] = []
+    clipped: list[Trims] = []
+    for m in found:
+        if m.saturated > policy.max_share * max(1, m.segment.samples):
+            clipped.append(m.segment.trims)
+        else:
+            used.append(m)
+    return used, clipped
 
 
 def _middle(points: Sequence[Trims]) -> Trims:

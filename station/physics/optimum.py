@@ -124,6 +124,14 @@ def _trims(u: NDArray[np.float64]) -> Trims:
     return Trims(float(u[0]), float(u[1]), GAIN_UNITY + float(u[2]), GAIN_UNITY - float(u[2]))
 
 
+def amplifier_optimum(unit: UnitParams) -> Trims:
+    """Where eq. (16) puts the optimum for the amplifier's errors alone: no net offset,
+    equal actual fundamentals at a constant gain sum."""
+    amp = unit.amplifier
+    gain_a = 2 * GAIN_UNITY * (1 + amp.gain_error_b) / (2 + amp.gain_error_a + amp.gain_error_b)
+    return Trims(-amp.offset_a_mA, -amp.offset_b_mA, gain_a, 2 * GAIN_UNITY - gain_a)
+
+
 def optimal_trims(
     unit: UnitParams,
     *,
@@ -159,14 +167,11 @@ def optimal_trims(
 
     if amplitude_mA <= 0:
         raise ValueError("the optimum is defined for a positive phase current amplitude")
-    # From where the amplifier's own errors put the optimum (eq. (16): no net offset,
-    # equal fundamentals); the other effects move it from there, and Newton follows. From
-    # the nominal trims a unit whose phases differ by a quarter was first sent 14,000 gain
-    # units the wrong way (population seed 956725264).
-    amp = unit.amplifier
-    split = (GAIN_UNITY * (amp.gain_error_b - amp.gain_error_a)
-             / (2.0 + amp.gain_error_a + amp.gain_error_b))
-    u = np.array([-amp.offset_a_mA, -amp.offset_b_mA, split])
+    # From where the amplifier's own errors put the optimum; the other effects move it
+    # from there, and Newton follows. From the nominal trims a unit whose phases differ by
+    # a quarter was first sent 14,000 gain units the wrong way (population seed 956725264).
+    start = amplifier_optimum(unit)
+    u = np.array([start.offset_a_mA, start.offset_b_mA, (start.gain_a - start.gain_b) / 2.0])
     base = harmonics(u)
     jac1, jac2 = jacobian(u, base)
     previous = math.inf

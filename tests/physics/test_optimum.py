@@ -11,7 +11,7 @@ import pytest
 
 from station.core import GAIN_UNITY, Effect, LoadKind, Trims
 from station.physics.motor import torque
-from station.physics.optimum import optimal_trims, steady_harmonics
+from station.physics.optimum import amplifier_optimum, optimal_trims, steady_harmonics
 from station.physics.params import UnitParams, derive_unit
 from station.physics.plant import DriveCommand, Plant
 from station.sim.population import draw_line_unit
@@ -20,13 +20,6 @@ M = 256
 T = 0.001
 RECORD_SAMPLES = 10_000
 """A 10-s record at 1 kHz: what 'measurable' is judged against."""
-
-
-def _amplifier_optimum(unit: UnitParams) -> Trims:
-    """Where eq. (16) puts the optimum: no net offset, equal actual fundamentals."""
-    amp = unit.amplifier
-    gain_a = 2 * GAIN_UNITY * (1 + amp.gain_error_b) / (2 + amp.gain_error_a + amp.gain_error_b)
-    return Trims(-amp.offset_a_mA, -amp.offset_b_mA, gain_a, 2 * GAIN_UNITY - gain_a)
 
 
 def _load_angle(unit: UnitParams, velocity: float) -> float:
@@ -46,7 +39,7 @@ def _load_angle(unit: UnitParams, velocity: float) -> float:
 def test_without_effects_the_optimum_exactly_undoes_the_amplifier(load: LoadKind) -> None:
     unit = derive_unit("SN123", load=load, effects=())
     found = optimal_trims(unit)
-    ideal = _amplifier_optimum(unit)
+    ideal = amplifier_optimum(unit)
     assert found.offset_a_mA == pytest.approx(ideal.offset_a_mA, abs=0.5)
     assert found.offset_b_mA == pytest.approx(ideal.offset_b_mA, abs=0.5)
     assert found.gain_a == pytest.approx(ideal.gain_a, abs=1.0)
@@ -74,7 +67,7 @@ def test_flux_harmonics_leave_the_residual_offsets_and_gains_the_paper_saw() -> 
     shifts = []
     for serial in ("SN1", "SN2", "SN3", "SN4"):
         unit = derive_unit(serial, effects=[Effect.FLUX_HARMONICS])
-        found, ideal = optimal_trims(unit), _amplifier_optimum(unit)
+        found, ideal = optimal_trims(unit), amplifier_optimum(unit)
         shifts.append((math.hypot(found.offset_a_mA - ideal.offset_a_mA,
                                   found.offset_b_mA - ideal.offset_b_mA),
                        abs(found.gain_a - ideal.gain_a)))
@@ -136,7 +129,7 @@ def test_the_plants_ripple_and_optimum_are_not_its_sensors_clock() -> None:
 
 def test_detent_shows_at_the_fourth_harmonic() -> None:
     unit = derive_unit("SN5", effects=())
-    calibrated = _amplifier_optimum(unit)
+    calibrated = amplifier_optimum(unit)
     plain = steady_harmonics(unit, calibrated, orders=(4,))
     detent = steady_harmonics(derive_unit("SN5", effects=[Effect.DETENT_TORQUE]), calibrated,
                               orders=(4,))
@@ -146,7 +139,7 @@ def test_detent_shows_at_the_fourth_harmonic() -> None:
 
 def test_current_distortion_moves_the_optimum() -> None:
     unit = derive_unit("SN6", effects=[Effect.CURRENT_DISTORTION])
-    found, ideal = optimal_trims(unit), _amplifier_optimum(unit)
+    found, ideal = optimal_trims(unit), amplifier_optimum(unit)
     assert math.hypot(found.offset_a_mA - ideal.offset_a_mA,
                       found.offset_b_mA - ideal.offset_b_mA) > 1.0
 
@@ -205,7 +198,7 @@ def test_an_optimum_without_current_is_refused() -> None:
 def test_plant_h1_vanishes_at_zero_net_offset_with_balanced_gains(load: LoadKind) -> None:
     unit = derive_unit("SN31", load=load, effects=())
     nominal = steady_harmonics(unit, Trims())
-    compensated = steady_harmonics(unit, _amplifier_optimum(unit))
+    compensated = steady_harmonics(unit, amplifier_optimum(unit))
     assert abs(compensated[0]) < 1e-4 * abs(nominal[0])
     assert abs(compensated[1]) < 1e-3 * abs(nominal[1])
 
@@ -213,7 +206,7 @@ def test_plant_h1_vanishes_at_zero_net_offset_with_balanced_gains(load: LoadKind
 def test_harmonics_at_a_frequency_off_the_sync_grid_still_span_whole_periods() -> None:
     """At 30 Hz a 4-period window would be 133.3 samples and leak H4 into H1."""
     unit = derive_unit("SN31", effects=[Effect.DETENT_TORQUE])
-    compensated = steady_harmonics(unit, _amplifier_optimum(unit), electrical_hz=30.0,
+    compensated = steady_harmonics(unit, amplifier_optimum(unit), electrical_hz=30.0,
                                    orders=(1, 4))
     assert abs(compensated[1]) > 0.1
     assert abs(compensated[0]) < 1e-4 * abs(compensated[1])
