@@ -122,6 +122,11 @@ class MagnitudeSweep:
     offset_spans_mA: tuple[int, ...]
     gain_spans: tuple[int, ...]
     points: int
+    # Holds of its own (None: the motion table's). A trim written over Modbus takes
+    # effect somewhere between its sending and its acknowledgement, and those samples
+    # are not used, so these holds cannot be as short as a CANopen star's.
+    settle_periods: int | None = None
+    dwell_periods: int | None = None
 
 
 @dataclass(frozen=True)
@@ -153,7 +158,11 @@ class SelfCheck:
 
 @dataclass(frozen=True)
 class Verification:
+    """The stored trims measured once more. ``settle_periods`` None (the key absent, as in
+    recipes written before it existed) settles as long as a sweep's hold does."""
+
     dwell_periods: int
+    settle_periods: int | None = None
 
 
 @dataclass(frozen=True)
@@ -317,6 +326,10 @@ def _read_magnitude_sweep(t: TomlTable | None, rated: int | None) -> MagnitudeSw
                                      "at most half of product.rated_current_mA"),
         gain_spans=_read_rounds(t, "gain_spans", MAX_GAIN_STEP, ""),
         points=t.integer("points", 3, 21),
+        settle_periods=(t.integer("settle_periods", 0, 1000) if t.has("settle_periods")
+                        else None),
+        dwell_periods=(t.integer("dwell_periods", 3, 10000) if t.has("dwell_periods")
+                       else None),
     )
     rounds_a, rounds_b = len(sweep.offset_spans_mA), len(sweep.gain_spans)
     if t.valid("offset_spans_mA", "gain_spans") and rounds_a and rounds_b and rounds_a != rounds_b:
@@ -367,7 +380,11 @@ def _read_self_check(t: TomlTable) -> SelfCheck:
 
 
 def _read_verification(t: TomlTable) -> Verification:
-    verification = Verification(dwell_periods=t.integer("dwell_periods", 3, 10000))
+    verification = Verification(
+        dwell_periods=t.integer("dwell_periods", 3, 10000),
+        settle_periods=(t.integer("settle_periods", 0, 1000) if t.has("settle_periods")
+                        else None),
+    )
     t.finish()
     return verification
 

@@ -23,6 +23,7 @@ from station.recipes import (
     PaperSweep,
     RecipeError,
     RecipeMethod,
+    Verification,
     available_recipes,
     load_recipe,
     parse_recipe,
@@ -112,13 +113,14 @@ def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> Non
     assert recipe.method is RecipeMethod.COHERENT
     assert recipe.sweep == CoherentSweep(offset_steps_mA=(100, 30, 10),
                                          gain_steps=(1000, 300, 100))
-    assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (8, 16)
-    assert recipe.hold_periods() == 12
+    assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (4, 16)
+    assert recipe.hold_periods() == 6
+    # Short holds for the sweep; the verification settles as long as the paper's points.
+    assert recipe.verification == Verification(dwell_periods=10, settle_periods=4)
+    assert reference.verification == Verification(dwell_periods=20, settle_periods=None)
+    assert reference.motion.settle_periods == 4
     assert recipe.product == reference.product
-    assert (recipe.self_check, recipe.verification) == (
-        reference.self_check,
-        reference.verification,
-    )
+    assert recipe.self_check == reference.self_check
     assert recipe.limits == reference.limits
 
 
@@ -338,6 +340,33 @@ def test_shipped_recipes_act_on_clipping_at_the_widest_sensor_range() -> None:
         assert recipe.motion.sensor_range_g == 16
         assert recipe.clipping is not None
         assert 0 < recipe.clipping.max_share < 0.5 and recipe.clipping.retries >= 1
+
+
+def test_a_verification_without_its_own_settle_settles_as_a_sweep_hold_does() -> None:
+    data = coherent()
+    del data["verification"]["settle_periods"]
+    assert parse_recipe(to_toml(data), source=SOURCE).verification.settle_periods is None
+    data["verification"]["settle_periods"] = 1001
+    assert only_problem(data).startswith("verification.settle_periods: must be ")
+
+
+def test_a_magnitude_sweep_may_hold_its_points_longer_than_the_star_does() -> None:
+    recipe = parse_recipe(to_toml(coherent()), source=SOURCE)
+    assert recipe.magnitude_sweep is not None
+    sweep = recipe.magnitude_sweep
+    # A Modbus write's uncertain samples cost about a period of every hold.
+    assert sweep.settle_periods is not None and sweep.dwell_periods is not None
+    assert sweep.settle_periods + sweep.dwell_periods > recipe.hold_periods()
+    data = coherent()
+    del data["magnitude_sweep"]["settle_periods"], data["magnitude_sweep"]["dwell_periods"]
+    older = parse_recipe(to_toml(data), source=SOURCE).magnitude_sweep
+    assert older is not None and (older.settle_periods, older.dwell_periods) == (None, None)
+    data["magnitude_sweep"]["dwell_periods"] = 2
+    data["magnitude_sweep"]["settle_periods"] = -1
+    found = problems(data)
+    assert len(found) == 2
+    assert any(p.startswith("magnitude_sweep.dwell_periods: must be ") for p in found)
+    assert any(p.startswith("magnitude_sweep.settle_periods: must be ") for p in found)
 
 
 def test_a_recipe_without_a_clipping_table_only_says_what_clipped() -> None:

@@ -31,6 +31,13 @@ from station.analysis.harmonics import (
     phase_drift,
 )
 from station.analysis.ringing import refine_ringing
+from station.analysis.sampling import (
+    RateObservation,
+    observe_rate,
+    pooled_rate,
+    sample_delays,
+    wrap_sign,
+)
 from station.analysis.segments import (
     SETTLE_ORDERS,
     Rejected,
@@ -60,6 +67,13 @@ class AnalysisOptions:
     settle_fallback: SettleFallback | None = None
     settle_orders: tuple[int, ...] = SETTLE_ORDERS  # whose per-period phasors must settle
     white_noise: bool = False  # each segment's noise beyond every order (``demodulate``)
+    # Each sample demodulated at the instant the sensor's own clock took it
+    # (``station.analysis.sampling``). Off for the diagnosis, whose model names a drifting
+    # clock (``sensor_clock_drift``) where calibration takes it out.
+    sample_instants: bool = True
+    # What earlier holds of the same run saw of the clock, pooled with this timeline's
+    # own holds: one sensor, one clock, and a round's few holds time it less surely.
+    clock_seen: tuple[RateObservation, ...] = ()
 
 
 class EstimateUnsupported(InputError):
@@ -73,6 +87,13 @@ class Measured:
     segment: Segment
     harmonics: Harmonics
     saturated: int  # samples clipped at ±32767 (left out of the fit)
+    # The sensor's clock as this hold saw it (its own rate, σ infinite where it could not
+    # time one), the rate its samples were demodulated at (without the drive's angle, with
+    # the speed error measured against the station's command, which holds it too), and a
+    # wrap found in it.
+    clock_observed: RateObservation | None = None
+    clock_rate: float = 0.0
+    wrap_at: int | None = None
 
     def point(self) -> TrimPoint:
         h = self.harmonics
@@ -139,21 +160,45 @@ def measure(
         timeline, signal, settle_periods=options.settle_periods,
         settle_fallback=options.settle_fallback, settle_orders=options.settle_orders,
     )
+    # Without the drive's angle the sensor's clock is part of the speed error measured from
+    # the data (both turn every order alike), from orders 1 and 2; what that leaves, the
+    # holds time from every order below (``observe_rate``).
+    errors = [0.0] * len(segments)
     if not timeline.drive_reported:
+        errors = speed_errors(segments, signal)
         segments = [replace(seg, microsteps_per_sample=seg.microsteps_per_sample * (1 + d))
-                    for seg, d in zip(segments, speed_errors(segments, signal), strict=True)]
+                    for seg, d in zip(segments, errors, strict=True)]
     if any(seg.ringing for seg in segments):
         segments = refine_ringing(signal, segments, run)
+    clipped = [bool(timeline.saturated[seg.start : seg.stop].any()) for seg in segments]
+    observed: list[RateObservation | None] = [None] * len(segments)
+    rate = 0.0
+    if options.sample_instants and segments:
+        # A hold still ringing is not timed (its transient would pass for a drift), nor
+        # one that clipped (``observe_rate``).
+        observed = [None if seg.ringing or clipped[i] else observe_rate(
+            signal[seg.start : seg.stop], seg.electrical_angle(), seg.samples_per_period)
+            for i, seg in enumerate(segments)]
+        rate = pooled_rate([*options.clock_seen, *(o for o in observed if o is not None)])
     out: list[Measured] = []
-    for seg in segments:
+    for seg, seen, cut, error in zip(segments, observed, clipped, errors, strict=True):
+        window = signal[seg.start : seg.stop]
+        # The wrap the clock makes, looked for the way the whole rate says (a drive's own
+        # clock, part of a Modbus drive's speed error, makes none, and none is found), but
+        # not in a clipped hold (``observe_rate``).
+        wrap = 0.0 if cut else wrap_sign(rate + error)
+        timing = (sample_delays(window, seg.electrical_angle(), seg.samples_per_period, rate,
+                                wrap=wrap) if rate or wrap else None)
         try:
-            h = seg.harmonics(signal[seg.start : seg.stop], options.orders,
-                              white_noise=options.white_noise)
+            h = seg.harmonics(window, options.orders, white_noise=options.white_noise,
+                              delays=None if timing is None else timing.delays)
         except ValueError as exc:
             rejected.append(Rejected(seg.start, seg.stop, f"cannot demodulate: {exc}"))
             continue
         saturated = int(np.count_nonzero(timeline.saturated[seg.start : seg.stop]))
-        out.append(Measured(seg, h, saturated))
+        out.append(Measured(seg, h, saturated, seen, rate + error,
+                            None if timing is None or timing.wrap_at is None
+                            else seg.start + timing.wrap_at))
     return out, rejected
 
 

@@ -211,16 +211,27 @@ class Segment:
         """Samples per electrical period: one period is 4·m microsteps (ICD.md §2)."""
         return 4 * self.microsteps_per_fullstep / abs(self.microsteps_per_sample)
 
+    @property
+    def angle_per_sample(self) -> float:
+        """dθ/dn in radians, signed with the direction of rotation."""
+        return 2 * math.pi * self.microsteps_per_sample / (4 * self.microsteps_per_fullstep)
+
     def electrical_angle(self) -> NDArray[np.float64]:
         return _electrical_angle(self.position0, self.microsteps_per_sample, self.samples,
                                  self.microsteps_per_fullstep)
 
     def harmonics(self, window: NDArray[np.float64], orders: int, *,
-                  white_noise: bool = False) -> Harmonics:
+                  white_noise: bool = False,
+                  delays: NDArray[np.float64] | None = None) -> Harmonics:
         """``demodulate`` of the segment's samples ``window`` on its own angle, with the
-        chain's ringing fitted out from the hold's change where it still rings."""
+        chain's ringing fitted out from the hold's change where it still rings; each
+        sample at its own instant where ``delays`` (in samples) says the sensor's clock
+        put it (``station.analysis.sampling``)."""
         poles, sweeps = self.decays(self.ringing, self.drift)
-        return demodulate(window, self.electrical_angle(), self.samples_per_period,
+        angle = self.electrical_angle()
+        if delays is not None:
+            angle = angle + self.angle_per_sample * delays
+        return demodulate(window, angle, self.samples_per_period,
                           orders=orders, decays=poles,
                           decay_from=self.start - self.held_from, white_noise=white_noise,
                           uncertain=self.ringing, sweeps=sweeps)

@@ -315,7 +315,7 @@ def _refuse_unless_characterization(segments: list[Segment], sync_period_s: floa
 def measure_options(orders: int, settle_fallback: SettleFallback | None) -> AnalysisOptions:
     return AnalysisOptions(
         orders=max(orders, DEMODULATED_ORDERS), settle_fallback=settle_fallback,
-        settle_orders=tuple(range(1, orders + 1)), white_noise=True)
+        settle_orders=tuple(range(1, orders + 1)), white_noise=True, sample_instants=False)
 
 
 Holds = tuple[tuple[int, int, Settling], ...]

@@ -1,0 +1,265 @@
+"""The sensor's own sample instants, where its clock runs apart from SYNC.
+
+ICD.md §5 puts sample n at n·T. A sensor that samples on its own clock, off by
+δ, reports at SYNC n what it sampled u_n periods earlier or later, and u_n moves
+by δ per sample until the sensor skips a sample (a faster clock: u jumps by +1)
+or repeats one (slower: −1). Within a hold at constant trims the waveform is
+periodic in the electrical angle, so a late sample reads the waveform at
+θ_n + u_n·dθ/dn: a steady ramp of u turns order k by k·dθ/dn·δ per sample, and
+a wrap shifts every later sample of the hold by a whole sample. On a unit whose
+detent or flux harmonics put tens of m/s² into orders 4-12, one skipped sample
+in a hold leaked into orders 1 and 2 as much as the trims' own ripple near the
+null (seed 5020: a 0.15 m/s² H1 read as 1.16 m/s²), and the ramp alone left
+the residual at three times the noise.
+
+So the harmonics are fitted at the samples' own instants: this module measures
+each hold's ramp (``observe_rate``), pools the holds' rates into the clock
+(``pooled_rate``: a clock turns every hold alike, a transient one hold its own
+way), finds a wrap in a hold by the whole-sample step it makes
+(``sample_delays``), and gives each sample its delay for the demodulation.
+The delays are centred on the hold, so the phasors keep the reference they had
+(the hold's mean instant): what a clock does to the phase from one hold to
+the next is not modelled here. Pure numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+from numpy.typing import NDArray
+
+from station.analysis.harmonics import _design, _nyquist
+
+WRAP_EXPLAINS: Final = 50.0
+"""Noise variances (of one sample) a whole-sample step must take out of a hold's residual
+to be taken as a wrap. A wrap on a waveform with strong detent orders takes out thousands
+(seed 5020: the residual's σ from 9.0 to 0.11 m/s²); a hold that merely rings gains a few
+from any step, which at this bar is never one."""
+_EDGE: Final = 3
+"""Samples at either end of a hold where a step is not looked for: there it is a constant
+delay, which the phasors take up."""
+_RAMP_ITERATIONS: Final = 3
+"""Gauss-Newton passes for a hold's rate: the delay's effect is linearised about the
+latest one, and at the highest fitted orders a few tenths of a sample is not linear."""
+TIMED_ORDERS: Final = 16
+"""Orders whose turn times the samples. Every order the sampling resolves is fitted (on a
+rough unit, orders 17-24 left out of the fit pulled a 254 ppm clock to 2 ppm: seed 9336),
+but above this one a tone may be an alias of an order beyond the Nyquist rate, which a
+delay turns the other way: timed as what it seems, such tones pulled the same clock to 0.
+At 20 Hz, order 16 is 320 Hz, below the sensor's band edge (ICD.md §3: at least 40 % of
+the SYNC rate), beyond which an order would have to lie to alias onto it."""
+MIN_RATE_SAMPLES: Final = 64
+"""Fewer present samples than this are not timed."""
+
+
+@dataclass(frozen=True)
+class RateObservation:
+    """One hold's own clock rate: u's change per sample, and its standard error
+    (infinite where the hold's waveform is too weak or short to time it)."""
+
+    rate: float
+    sigma: float
+
+
+@dataclass(frozen=True)
+class Delays:
+    """Each present sample's delay (in sample periods, centred on the hold) and where a
+    wrap was found (the hold's first sample after it, None without one)."""
+
+    delays: NDArray[np.float64]  # (n,) 0 where the sample is missing
+    wrap_at: int | None
+
+
+@dataclass(frozen=True)
+class _Present:
+    """A hold's present samples, their SYNC angles and positions, and the orders fitted:
+    every order the sampling resolves (a rough unit's orders 17-24, left out, pulled a
+    254 ppm clock to 2 ppm: seed 9336)."""
+
+    y: NDArray[np.float64]
+    angle: NDArray[np.float64]
+    index: NDArray[np.float64]  # position in the hold
+    step: float  # dθ/dn
+    orders: int
+
+    @classmethod
+    def of(cls, window: NDArray[np.float64], angle: NDArray[np.float64],
+           samples_per_period: float) -> _Present | None:
+        """None where the hold cannot be timed: too few samples for its orders."""
+        present = ~np.isnan(window)
+        orders = _nyquist(samples_per_period)
+        if angle.size < 2 or int(present.sum()) < max(MIN_RATE_SAMPLES, 4 * orders + 4):
+            return None
+        return cls(window[present], angle[present],
+                   np.flatnonzero(present).astype(np.float64), float(angle[1] - angle[0]),
+                   orders)
+
+    @property
+    def centred(self) -> NDArray[np.float64]:
+        out: NDArray[np.float64] = self.index - self.index.mean()
+        return out
+
+    def fit(self, delays: NDArray[np.float64]
+            ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The harmonics' coefficients and residual with each sample ``delays`` late."""
+        design = _design(self.angle + self.step * delays, self.orders)
+        solution = np.linalg.lstsq(design, self.y, rcond=None)
+        coef: NDArray[np.float64] = np.asarray(solution[0], dtype=np.float64)
+        residual: NDArray[np.float64] = self.y - design @ coef
+        return coef, residual
+
+    def slope(self, coef: NDArray[np.float64], delays: NDArray[np.float64]
+              ) -> NDArray[np.float64]:
+        """How the fitted waveform's timed orders (``TIMED_ORDERS``) move per sample of
+        delay at each sample."""
+        timed = min(self.orders, TIMED_ORDERS)
+        k = np.arange(1, timed + 1, dtype=np.float64)
+        phase = np.outer(self.angle + self.step * delays, k)
+        cos_part = coef[1:timed + 1]
+        sin_part = coef[self.orders + 1:self.orders + 1 + timed]
+        out: NDArray[np.float64] = self.step * ((np.cos(phase) * k) @ sin_part
+                                                - (np.sin(phase) * k) @ cos_part)
+        return out
+
+    def wrap(self, ramp: NDArray[np.float64], signs: tuple[float, ...]
+             ) -> NDArray[np.float64] | None:
+        """The step a wrap adds to ``ramp``, or None: located to first order
+        (``_best_step``), then kept only where the exact fit at the stepped instants
+        explains ``WRAP_EXPLAINS`` noise variances more (a whole sample is far from linear
+        at the highest orders)."""
+        coef, residual = self.fit(ramp)
+        where, sign = _best_step(residual, self.slope(coef, ramp), signs)
+        dof = self.y.size - (2 * self.orders + 1)
+        if where < 0 or dof <= 0:
+            return None
+        jump = np.where(self.index >= self.index[where], sign, 0.0)
+        jump -= jump.mean()
+        _, stepped = self.fit(ramp + jump)
+        left = float(stepped @ stepped)
+        if float(residual @ residual) - left <= WRAP_EXPLAINS * left / dof:
+            return None
+        return jump
+
+
+def _best_step(residual: NDArray[np.float64], slope: NDArray[np.float64],
+               signs: tuple[float, ...]) -> tuple[int, float]:
+    """Where a whole-sample step of the delay (with a free constant beside it) best
+    explains ``residual`` to first order, and its sign: cumulative sums make every
+    position one pass. Returns (-1, 0) when no position improves on no step."""
+    n = residual.size
+    ss, sr = float(slope @ slope), float(slope @ residual)
+    if n <= 2 * _EDGE or ss <= 0.0:
+        return -1, 0.0
+    rr = float(residual @ residual)
+    plain = rr - sr * sr / ss
+    tail_ss = np.cumsum((slope * slope)[::-1])[::-1]
+    tail_sr = np.cumsum((slope * residual)[::-1])[::-1]
+    best, where, sign = 0.0, -1, 0.0
+    for s in signs:
+        left = (rr - 2.0 * s * tail_sr + tail_ss) - (sr - s * tail_ss) ** 2 / ss
+        inner = left[_EDGE:n - _EDGE]
+        m = int(np.argmin(inner))
+        if plain - float(inner[m]) > best:
+            best, where, sign = plain - float(inner[m]), m + _EDGE, s
+    return where, sign
+
+
+def observe_rate(window: NDArray[np.float64], angle: NDArray[np.float64],
+                 samples_per_period: float) -> RateObservation:
+    """The hold's clock rate from the way its samples drift along its own waveform.
+
+    A wrap is looked for first (either way), so that its step does not pass for a ramp;
+    then u = rate·(n − n̄) is fitted by Gauss-Newton on the linearised waveform, with a
+    free constant beside it (a constant delay is a turn of the phasors, which the hold
+    cannot tell from their own phase).
+
+    Not for a hold that clipped: its samples are missing at the same phases of every
+    period, where a fit of every order has no data and its slope means nothing (seed
+    9336: holds with 20 % clipped claimed a 254 ppm clock was 0 ± 0.001 ppm).
+    """
+    hold = _Present.of(window, angle, samples_per_period)
+    if hold is None:
+        return RateObservation(0.0, math.inf)
+    t = hold.centred
+    jump = hold.wrap(np.zeros_like(t), (1.0, -1.0))
+    base = np.zeros_like(t) if jump is None else jump
+    rate = 0.0
+    design = np.empty((t.size, 2))
+    residual = hold.y
+    for _ in range(_RAMP_ITERATIONS):
+        delays = base + rate * t
+        coef, residual = hold.fit(delays)
+        slope = hold.slope(coef, delays)
+        design[:, 0] = slope
+        design[:, 1] = slope * t
+        solution, *_ = np.linalg.lstsq(design, residual, rcond=None)
+        rate += float(solution[1])
+    dof = t.size - (2 * hold.orders + 1) - 2
+    gram = design.T @ design
+    if dof <= 0 or abs(float(np.linalg.det(gram))) <= 0.0:
+        return RateObservation(0.0, math.inf)
+    variance = float(residual @ residual) / dof * float(np.linalg.inv(gram)[1, 1])
+    if not (math.isfinite(rate) and math.isfinite(variance) and variance > 0.0):
+        return RateObservation(0.0, math.inf)
+    return RateObservation(rate, math.sqrt(variance))
+
+
+def sample_delays(window: NDArray[np.float64], angle: NDArray[np.float64],
+                  samples_per_period: float, rate: float, *, wrap: float) -> Delays:
+    """Each sample's delay under a clock of ``rate`` (u per sample), with the wrap of
+    sign ``wrap`` where one falls in the hold (0: none is looked for; ``wrap_sign``)."""
+    delays = np.zeros(window.size)
+    present = ~np.isnan(window)
+    where = np.flatnonzero(present)
+    if where.size:
+        delays[present] = rate * (where - where.mean())
+    hold = _Present.of(window, angle, samples_per_period) if wrap != 0.0 else None
+    if hold is None:
+        return Delays(delays, None)
+    ramp = rate * hold.centred
+    jump = hold.wrap(ramp, (wrap,))
+    if jump is None:
+        return Delays(delays, None)
+    delays[present] = ramp + jump
+    first = int(np.argmax(np.abs(np.diff(jump)) > 0.5)) + 1
+    return Delays(delays, int(hold.index[first]))
+
+
+def wrap_sign(rate: float) -> float:
+    """The step a clock of ``rate`` makes when it wraps: +1 a skipped sample (faster than
+    SYNC, its samples ever earlier), −1 a repeated one (slower), 0 without a clock."""
+    return 0.0 if rate == 0.0 else -math.copysign(1.0, rate)
+
+
+POOL_SIGMAS: Final = 5.0
+"""Standard errors the pooled rate must stand clear of zero to be taken as a clock."""
+MIN_POOLED: Final = 3
+"""Holds that must have timed a rate before any is pooled."""
+
+
+def pooled_rate(observations: Sequence[RateObservation]) -> float:
+    """The clock the holds agree on (u per sample), or 0 unless it is clear of zero.
+
+    The median of the holds' rates, and its standard error from their own scatter: a
+    hold's σ counts only its noise, and the transient a trim change leaves in a short
+    hold turns its phasors too. On a disk with a load resonance and a −356 ppm clock
+    (seed 9329) the first round's holds, 2 + 4 periods after steps of 100 mA, timed
+    −1,700 to +2,800 ppm with σ under 300, while the next rounds' holds scattered about
+    the clock by ±70 ppm and the verification's 10 periods timed −358.5 ± 1.3 ppm: a
+    weighted mean takes one hold's transient for the clock, an agreement test within
+    each σ finds none.
+    """
+    rates = np.array([o.rate for o in observations if math.isfinite(o.sigma)])
+    if rates.size < MIN_POOLED:
+        return 0.0
+    centre = float(np.median(rates))
+    spread = 1.4826 * float(np.median(np.abs(rates - centre)))
+    # The median's standard error, never below what the holds' own noise allows.
+    noise = math.sqrt(1.0 / sum(1.0 / o.sigma ** 2 for o in observations
+                                if math.isfinite(o.sigma)))
+    sigma = max(1.2533 * spread / math.sqrt(rates.size), noise)
+    return centre if abs(centre) > POOL_SIGMAS * sigma else 0.0

@@ -1,0 +1,139 @@
+"""The sensor's own sample instants (station.analysis.sampling), on synthetic holds."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from station.analysis.harmonics import demodulate
+from station.analysis.sampling import (
+    RateObservation,
+    observe_rate,
+    pooled_rate,
+    sample_delays,
+    wrap_sign,
+)
+
+SPP = 50.0  # 20 Hz at a 1 ms SYNC
+SAMPLES = 300  # a 2 + 4 period hold
+ORDERS = 16
+STEP = 2 * math.pi / SPP
+# Order -> phasor of A·cos(kθ + φ): a unit near its null, H1 0.15 m/s², beside detent and
+# flux orders of tens of m/s² (the units where a wrap mattered).
+CONTENT: dict[int, complex] = {
+    1: 0.15 * np.exp(0.7j),
+    2: 0.05 * np.exp(-0.3j),
+    4: 40.0 * np.exp(1.1j),
+    5: 3.0 * np.exp(-2.0j),
+    8: 12.0 * np.exp(0.4j),
+    12: 4.0 * np.exp(2.5j),
+}
+
+
+def hold(delays: NDArray[np.float64], noise: float = 0.02, seed: int = 1
+         ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A hold's samples as a sensor late by ``delays`` (samples) read them, and the
+    SYNC's own angles."""
+    n = np.arange(delays.size, dtype=np.float64)
+    angle = 0.3 + STEP * n
+    at = angle + STEP * delays
+    y = 9.0 + sum(abs(z) * np.cos(k * at + np.angle(z)) for k, z in CONTENT.items())
+    y = y + np.random.default_rng(seed).normal(0.0, noise, delays.size)
+    return np.asarray(y, dtype=np.float64), angle
+
+
+def sawtooth(rate: float, first: float, samples: int = SAMPLES) -> NDArray[np.float64]:
+    """Delays of a clock of ``rate`` (u per sample) starting at ``first``, wrapped into
+    (−1, 0]: the latest sample the sensor took before each SYNC."""
+    u = first + rate * np.arange(samples, dtype=np.float64)
+    return -np.mod(-u, 1.0)
+
+
+def h1_error(y: NDArray[np.float64], angle: NDArray[np.float64],
+             delays: NDArray[np.float64] | None, truth: NDArray[np.float64]) -> float:
+    """|ΔH1| of the demodulation against the waveform's, turned to the hold's mean instant."""
+    at = angle if delays is None else angle + STEP * delays
+    h1 = demodulate(y, at, SPP, orders=ORDERS).h(1)
+    return abs(h1 - CONTENT[1] * np.exp(1j * STEP * float(truth.mean())))
+
+
+@pytest.mark.parametrize("ppm", [-480.0, -226.0, 150.0, 455.0])
+def test_a_hold_times_its_sensor_s_clock_from_its_own_waveform(ppm: float) -> None:
+    delays = sawtooth(ppm * 1e-6, -0.4)
+    y, angle = hold(delays)
+    seen = observe_rate(y, angle, SPP)
+    assert abs(seen.rate - ppm * 1e-6) < max(5 * seen.sigma, 5e-6)
+    assert seen.sigma < 20e-6
+
+
+def test_a_sensor_on_the_sync_shows_no_rate() -> None:
+    y, angle = hold(np.zeros(SAMPLES), seed=4)
+    seen = observe_rate(y, angle, SPP)
+    assert abs(seen.rate) < 5 * seen.sigma
+    delays = sample_delays(y, angle, SPP, 0.0, wrap=0.0)
+    assert delays.wrap_at is None and not delays.delays.any()
+
+
+@pytest.mark.parametrize(("ppm", "first"), [(-300.0, -0.95), (400.0, -0.02)])
+def test_a_skipped_or_repeated_sample_is_found_where_it_is(ppm: float, first: float) -> None:
+    # A faster clock skips a sample (the delay jumps by +1), a slower one repeats one (−1).
+    delays = sawtooth(ppm * 1e-6, first)
+    jumps = np.flatnonzero(np.abs(np.diff(delays)) > 0.5) + 1
+    assert jumps.size == 1
+    y, angle = hold(delays)
+    seen = observe_rate(y, angle, SPP)
+    assert abs(seen.rate - ppm * 1e-6) < max(5 * seen.sigma, 5e-6)
+    found = sample_delays(y, angle, SPP, ppm * 1e-6, wrap=wrap_sign(ppm * 1e-6))
+    assert found.wrap_at == int(jumps[0])
+    # Relative instants right to a few hundredths of a sample.
+    spread = (found.delays - delays) - np.mean(found.delays - delays)
+    assert float(np.max(np.abs(spread))) < 0.03
+    # The near-null H1 the skipped sample drowned is back.
+    before = h1_error(y, angle, None, delays)
+    after = h1_error(y, angle, found.delays, delays)
+    assert before > 0.05 and after < 0.005
+
+
+def test_a_wrap_of_the_wrong_sign_for_the_clock_is_not_taken() -> None:
+    # A slower clock repeats samples; a step the other way is not its wrap.
+    delays = sawtooth(-300e-6, -0.95)
+    y, angle = hold(delays)
+    assert sample_delays(y, angle, SPP, 300e-6, wrap=wrap_sign(300e-6)).wrap_at is None
+
+
+def test_holds_of_one_run_agree_on_one_clock() -> None:
+    # Six holds 300 samples apart, one sawtooth through them all.
+    ppm = -226.0
+    run = sawtooth(ppm * 1e-6, -0.1, 6 * SAMPLES)
+    seen = []
+    for i in range(6):
+        y, angle = hold(run[i * SAMPLES:(i + 1) * SAMPLES], seed=10 + i)
+        seen.append(observe_rate(y, angle, SPP))
+    assert pooled_rate(seen) == pytest.approx(ppm * 1e-6, abs=10e-6)
+    # A clock-free sensor's holds pool to none.
+    still = [observe_rate(*hold(np.zeros(SAMPLES), seed=20 + i), SPP) for i in range(6)]
+    assert pooled_rate(still) == 0.0
+
+
+def test_one_hold_s_transient_is_not_taken_for_the_clock() -> None:
+    # Holds after large steps rang and timed wildly, each with a small σ of its noise;
+    # the rest agree on the clock within their scatter (seed 9329's rounds, in ppm).
+    wild = [(-510, 12), (33, 16), (-1703, 84), (1501, 89), (-1732, 44), (2826, 113)]
+    agreeing = [(-485, 9), (-361, 6), (-277, 8), (-402, 6), (-368, 6), (-283, 6),
+                (-341, 6), (-418, 7), (-359, 1)]
+    observations = [RateObservation(r * 1e-6, s * 1e-6) for r, s in wild]
+    assert pooled_rate(observations) == 0.0
+    observations += [RateObservation(r * 1e-6, s * 1e-6) for r, s in agreeing]
+    assert pooled_rate(observations) == pytest.approx(-361e-6, abs=15e-6)
+    assert pooled_rate([RateObservation(0.0, math.inf)] * 5) == 0.0
+
+
+def test_a_weak_or_short_hold_times_nothing() -> None:
+    y, angle = hold(np.zeros(40))
+    assert math.isinf(observe_rate(y, angle, SPP).sigma)
+    y, angle = hold(np.zeros(SAMPLES))
+    y[:] = np.nan
+    assert math.isinf(observe_rate(y, angle, SPP).sigma)
