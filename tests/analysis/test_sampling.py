@@ -57,7 +57,7 @@ def h1_error(y: NDArray[np.float64], angle: NDArray[np.float64],
     """|ΔH1| of the demodulation against the waveform's, turned to the hold's mean instant."""
     at = angle if delays is None else angle + STEP * delays
     h1 = demodulate(y, at, SPP, orders=ORDERS).h(1)
-    return abs(h1 - CONTENT[1] * np.exp(1j * STEP * float(truth.mean())))
+    return float(abs(h1 - CONTENT[1] * np.exp(1j * STEP * float(truth.mean()))))
 
 
 @pytest.mark.parametrize("ppm", [-480.0, -226.0, 150.0, 455.0])
