@@ -171,7 +171,7 @@ BAD_RECIPES = {
         lambda f: str(_variant(f, "typed", ("sensor_range_g = 16", 'sensor_range_g = "16"'))),
         ("motion.sensor_range_g",)),
     "bool-for-number": BadRecipe(
-        lambda f: str(_variant(f, "boolean", ("dwell_periods = 8", "dwell_periods = true"))),
+        lambda f: str(_variant(f, "boolean", ("dwell_periods = 4", "dwell_periods = true"))),
         ("motion.dwell_periods",)),
     "out-of-range": BadRecipe(
         lambda f: str(_variant(f, "ranged", ("sensor_range_g = 16", "sensor_range_g = 3"))),
