@@ -37,15 +37,14 @@ from station.analysis.estimate import (
     ParabolaFit,
     TrimAxis,
     TrimEstimate,
-    TrimPoint,
     TrimSigma,
     Unsupported,
     coherent_estimate,
     fit_parabola,
 )
-from station.analysis.pipeline import AnalysisOptions, Measured, measure
+from station.analysis.pipeline import AnalysisOptions, Measured, clock_from_phasors, measure
 from station.analysis.report import fit_summary
-from station.analysis.sampling import RateObservation
+from station.analysis.sampling import ClockPhase, RateObservation, pooled_clock
 from station.analysis.timeline import Timeline
 from station.benches import BenchSession, BenchSpec, open_bench
 from station.capture import FrameCapture
@@ -222,7 +221,8 @@ class _Calibration:
         # clock), the rate the latest holds were demodulated at, and the wraps found.
         self.clock_seen: list[RateObservation] = []
         self.clock_rate = 0.0
-        self.wraps = 0
+        self.wraps: list[int] = []  # where, in the run's samples
+        self.clock_phasors: float | None = None  # the rate the phasors fitted best
 
     # -- the whole run ------------------------------------------------------------------------
 
@@ -494,13 +494,17 @@ class _Calibration:
         )
         assert self.capture is not None
         mark = self.capture.mark()
+        # The timeline begins at the first SYNC after the mark: the run's sample index of
+        # the next SYNC (one SYNC between the two calls moves u by a millionth of a period).
+        first = self.capture.syncs_seen()
         motion.run(holds)
         timeline = self.capture.timeline(mark, self.commands)
         self._check_sensor(timeline)
         self._count_clipping(timeline, phase)
         measured, rejected = measure(timeline, AnalysisOptions(
-            settle_periods=float(settle), clock_seen=tuple(self.clock_seen)))
-        self._follow_clock(measured)
+            settle_periods=float(settle), clock_seen=tuple(self.clock_seen),
+            first_sample=first, wraps_seen=tuple(self.wraps)))
+        self._follow_clock(measured, first)
         best: dict[Trims, Measured] = {}
         for m in measured:
             seg = m.segment
@@ -522,13 +526,23 @@ class _Calibration:
             )
         return found
 
-    def _follow_clock(self, measured: Sequence[Measured]) -> None:
+    def _follow_clock(self, measured: Sequence[Measured], first: int) -> None:
         """Keep what these holds saw of the sensor's clock for the run's later holds."""
         self.clock_seen.extend(m.clock_observed for m in measured
                                if m.clock_observed is not None)
         if measured:
             self.clock_rate = measured[0].clock_rate
-        self.wraps += sum(m.wrap_at is not None for m in measured)
+        self.wraps.extend(first + m.wrap_at for m in measured if m.wrap_at is not None)
+
+    def _clock_phase(self, held: Sequence[Measured]) -> ClockPhase | None:
+        """The sensor's clock over the run so far, as the holds timed it and the phasors
+        refine it; None where no phasor is used (without the drive's angle only
+        magnitudes are)."""
+        if self.commands is not None:
+            return None
+        clock = clock_from_phasors(held, pooled_clock(self.clock_seen), self.wraps)
+        self.clock_phasors = clock.rate
+        return clock
 
     def _count_clipping(self, timeline: Timeline, phase: Phase) -> None:
         """Say when holds clipped: the analysis leaves those samples out of its fits, and
@@ -588,7 +602,10 @@ class _Calibration:
         run.uncertainty = Trims(s.offset_a_mA, s.offset_b_mA, s.gain_a, s.gain_b)
         run.fit = fit_summary(estimate)
         # The sensor's clock against SYNC as the holds were demodulated (0: on the SYNC).
-        run.fit["sensor_clock"] = {"ppm": round(self.clock_rate * 1e6, 1), "wraps": self.wraps}
+        run.fit["sensor_clock"] = {
+            "ppm": round(self.clock_rate * 1e6, 1), "wraps": len(self.wraps),
+            **({} if self.clock_phasors is None
+               else {"phasors_ppm": round(self.clock_phasors * 1e6, 1)})}
         run.warnings.extend(estimate.warnings)
         return estimate
 
@@ -643,7 +660,7 @@ class _Calibration:
                   baseline: list[Measured]) -> TrimEstimate:
         """Star designs round after round, each around the latest estimate."""
         rated = self.recipe.product.rated_current_mA
-        points: list[TrimPoint] = [m.point() for m in baseline]
+        held: list[Measured] = list(baseline)
         estimate: TrimEstimate | None = None
         rounds = list(zip(sweep.offset_steps_mA, sweep.gain_steps, strict=True))
         for number, (offset_step, gain_step) in enumerate(rounds, start=1):
@@ -660,8 +677,11 @@ class _Calibration:
                 f"round {number}/{len(rounds)}: ±{offset_step} mA, ±{gain_step} around "
                 f"{_trims_text(centre)}",
             )
-            points.extend(m.point() for m in self._measure(motion, todo, Phase.SWEEP_STAR,
-                                                                centre=centre))
+            held.extend(self._measure(motion, todo, Phase.SWEEP_STAR, centre=centre))
+            # Every hold so far on the clock as the run knows it now: the first round's
+            # holds were demodulated before the later ones had timed it.
+            clock = self._clock_phase(held)
+            points = [m.point(clock) for m in held]
             self.observer.step(Step.ESTIMATE, f"round {number}: {len(points)} points")
             estimate = coherent_estimate(points)
             centre = within_drive_range(estimate.trims, rated)

@@ -217,7 +217,34 @@ def test_a_sensor_on_its_own_clock_is_followed_sample_by_sample(db: Path, modbus
     # Over CANopen a skip fell in a measured stretch; the Modbus holds measure 3 of their
     # 7 periods, and on this unit no skip fell in one.
     assert clock["wraps"] == (0 if modbus else 1)
+    # Over CANopen the phasors time it too, and put every hold on it.
+    assert ("phasors_ppm" in clock) is not modbus
+    if not modbus:
+        assert abs(clock["phasors_ppm"] - ppm) < 15
     _assert_on_the_plants_optimum(run, 5020)
+
+
+@pytest.mark.parametrize(("seed", "ppm"), [
+    (725234896, -322),  # a belt with a load resonance: no hold could time its clock
+    (1728856850, 0),  # a belt with friction and an eccentric rotor, and no clock at all
+])
+def test_the_phasors_time_a_clock_that_the_holds_could_not(db: Path, seed: int,
+                                                            ppm: int) -> None:
+    # A belt's holds ring after every step and time the clock to no better than
+    # ±1000 ppm, but a clock turns every later hold's phasors in proportion to its |H|,
+    # which the trims cannot explain: the phasors time it instead. An eccentric rotor
+    # turns them too, with the rotor's angle: it is modelled, not taken for a clock.
+    line = draw_line_unit(seed)
+    assert line.unit.load is LoadKind.BELT
+    assert line.unit.sensor.clock_drift_ppm == pytest.approx(ppm, abs=0.5)
+    station, serial = _drawn_station(db, seed)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.PASS, run.reason
+    assert run.fit is not None
+    clock = run.fit["sensor_clock"]
+    assert clock["ppm"] == 0.0
+    assert abs(clock["phasors_ppm"] - line.unit.sensor.clock_drift_ppm) < 15
+    _assert_on_the_plants_optimum(run, seed)
 
 
 def test_a_recipe_without_a_clipping_policy_uses_clipped_holds_and_says_so(

@@ -17,9 +17,14 @@ each hold's ramp (``observe_rate``), pools the holds' rates into the clock
 (``pooled_rate``: a clock turns every hold alike, a transient one hold its own
 way), finds a wrap in a hold by the whole-sample step it makes
 (``sample_delays``), and gives each sample its delay for the demodulation.
-The delays are centred on the hold, so the phasors keep the reference they had
-(the hold's mean instant): what a clock does to the phase from one hold to
-the next is not modelled here. Pure numpy.
+Within a hold the delays alone would be centred on the hold, leaving each
+phasor turned by wherever u stood at the hold's mean instant: from one hold
+to the next a −140 ppm clock turned H2 by up to 14° over a run, and the
+estimate's last round of points near the null fitted its affine maps at
+twice the noise (seed 1201662595). ``ClockPhase`` places every hold on the
+run's one clock instead: u = δ·n plus the wraps so far, counted on the
+lattice of wraps the holds placed (one every 1/|δ| samples), so that every
+phasor of a run shares one reference. Pure numpy.
 """
 
 from __future__ import annotations
@@ -229,6 +234,56 @@ def sample_delays(window: NDArray[np.float64], angle: NDArray[np.float64],
     return Delays(delays, int(hold.index[first]))
 
 
+@dataclass(frozen=True)
+class ClockPhase:
+    """Where the sensor's clock stands against SYNC over a whole run, up to one constant.
+
+    u_n = δ·n + s·W(n), s the step a wrap makes (``wrap_sign``) and W(n) the wraps
+    before sample n: one every 1/|δ| samples, on the lattice through the wraps the holds
+    placed (``anchor``). Without a placed wrap W is 0: a clock that wrapped where no hold
+    could see it (between holds, or in holds too quiet to show the step) is then
+    followed by its ramp alone, which is what the hold-centred delays did before it.
+    """
+
+    rate: float  # δ, u per sample
+    anchor: float | None  # a wrap's place on the run's sample index, None without one
+
+    @classmethod
+    def of(cls, rate: float, wraps: Sequence[int]) -> ClockPhase:
+        """The lattice that best fits the wraps placed (absolute indices): their circular
+        mean on the lattice's period, so that one wrap placed a few samples off by a
+        hold's noise does not move the others."""
+        if rate == 0.0 or not wraps:
+            return cls(rate, None)
+        period = 1.0 / abs(rate)
+        turns = np.exp(2j * math.pi * np.asarray(wraps, dtype=np.float64) / period)
+        phase = float(np.angle(turns.mean())) % (2 * math.pi)
+        return cls(rate, phase / (2 * math.pi) * period)
+
+    def wraps_before(self, index: NDArray[np.float64]) -> NDArray[np.float64]:
+        """W(n): the lattice's wraps at or before each sample index (0 without an anchor),
+        up to a constant."""
+        if self.anchor is None or self.rate == 0.0:
+            return np.zeros_like(index)
+        out: NDArray[np.float64] = np.floor((index - self.anchor) * abs(self.rate)) + 1.0
+        return out
+
+    def delays(self, index: NDArray[np.float64], own_wrap: int | None = None
+               ) -> NDArray[np.float64]:
+        """u at each absolute sample ``index`` of one hold (in samples, up to the run's one
+        constant); ``own_wrap`` the wrap the hold itself placed (its first sample after
+        it), which is kept where it was found and counted as the lattice's nearest wrap."""
+        ramp = self.rate * index
+        sign = wrap_sign(self.rate)
+        if own_wrap is not None and self.anchor is not None:
+            nearest = round((own_wrap - self.anchor) * abs(self.rate))
+            count = nearest + (index >= own_wrap).astype(np.float64)
+        else:
+            count = self.wraps_before(index)
+        out: NDArray[np.float64] = ramp + sign * count
+        return out
+
+
 def wrap_sign(rate: float) -> float:
     """The step a clock of ``rate`` makes when it wraps: +1 a skipped sample (faster than
     SYNC, its samples ever earlier), −1 a repeated one (slower), 0 without a clock."""
@@ -242,7 +297,15 @@ MIN_POOLED: Final = 3
 
 
 def pooled_rate(observations: Sequence[RateObservation]) -> float:
-    """The clock the holds agree on (u per sample), or 0 unless it is clear of zero.
+    """The clock the holds agree on (u per sample), or 0 unless it is clear of zero
+    (``pooled_clock``)."""
+    pooled = pooled_clock(observations)
+    return pooled.rate if abs(pooled.rate) > POOL_SIGMAS * pooled.sigma else 0.0
+
+
+def pooled_clock(observations: Sequence[RateObservation]) -> RateObservation:
+    """The clock the holds agree on and its standard error, clear of zero or not (σ
+    infinite with fewer than ``MIN_POOLED`` holds timed).
 
     The median of the holds' rates, and its standard error from their own scatter: a
     hold's σ counts only its noise, and the transient a trim change leaves in a short
@@ -253,13 +316,14 @@ def pooled_rate(observations: Sequence[RateObservation]) -> float:
     weighted mean takes one hold's transient for the clock, an agreement test within
     each σ finds none.
     """
+    none = RateObservation(0.0, math.inf)
     rates = np.array([o.rate for o in observations if math.isfinite(o.sigma)])
     if rates.size < MIN_POOLED:
-        return 0.0
+        return none
     centre = float(np.median(rates))
     spread = 1.4826 * float(np.median(np.abs(rates - centre)))
     # The median's standard error, never below what the holds' own noise allows.
     noise = math.sqrt(1.0 / sum(1.0 / o.sigma ** 2 for o in observations
                                 if math.isfinite(o.sigma)))
     sigma = max(1.2533 * spread / math.sqrt(rates.size), noise)
-    return centre if abs(centre) > POOL_SIGMAS * sigma else 0.0
+    return RateObservation(centre, sigma)

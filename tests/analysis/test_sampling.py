@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from station.analysis.harmonics import demodulate
 from station.analysis.sampling import (
+    ClockPhase,
     RateObservation,
     observe_rate,
     pooled_rate,
@@ -137,3 +138,38 @@ def test_a_weak_or_short_hold_times_nothing() -> None:
     y, angle = hold(np.zeros(SAMPLES))
     y[:] = np.nan
     assert math.isinf(observe_rate(y, angle, SPP).sigma)
+
+
+@pytest.mark.parametrize("ppm", [-480.0, 455.0])
+def test_the_run_s_clock_puts_every_hold_on_one_sawtooth_from_a_few_wraps_placed(
+    ppm: float,
+) -> None:
+    # Twenty seconds of a drifting clock: nine wraps or more, of which the holds placed
+    # two, each a few samples off. Every sample's delay then follows the sawtooth up to
+    # one constant (a turn shared by every phasor of the run) but next to a wrap.
+    samples = 20_000
+    run = sawtooth(ppm * 1e-6, -0.3, samples)
+    wraps = np.flatnonzero(np.abs(np.diff(run)) > 0.5) + 1
+    assert wraps.size >= 9
+    clock = ClockPhase.of(ppm * 1e-6, [int(wraps[1]) + 3, int(wraps[4]) - 2])
+    index = np.arange(samples, dtype=np.float64)
+    offset = clock.delays(index) - run
+    away = np.ones(samples, dtype=bool)
+    for w in wraps:
+        away[max(0, w - 10):w + 10] = False
+    assert float(np.ptp(offset[away])) < 1e-9
+    # A hold that placed a wrap of its own keeps it where it found it, not where the
+    # lattice of the others puts it.
+    own = int(wraps[6])
+    hold_index = np.arange(own - 150, own + 150)
+    shifted = clock.delays(hold_index.astype(np.float64), own) - run[hold_index]
+    assert float(np.ptp(shifted)) < 1e-9
+    assert shifted[0] == pytest.approx(offset[away][0])
+
+
+def test_without_a_wrap_placed_the_run_s_clock_is_its_ramp() -> None:
+    clock = ClockPhase.of(-200e-6, [])
+    index = np.arange(0.0, 3000.0)
+    assert clock.anchor is None
+    assert np.allclose(clock.delays(index), -200e-6 * index)
+    assert not ClockPhase.of(0.0, [1000]).delays(index).any()
