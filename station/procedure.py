@@ -42,7 +42,8 @@ from station.analysis.estimate import (
     coherent_estimate,
     fit_parabola,
 )
-from station.analysis.pipeline import AnalysisOptions, Measured, clock_from_phasors, measure
+from station.analysis.phasor_clock import clock_from_phasors
+from station.analysis.pipeline import AnalysisOptions, Measured, measure
 from station.analysis.report import fit_summary
 from station.analysis.sampling import ClockPhase, RateObservation, pooled_clock
 from station.analysis.timeline import Timeline
