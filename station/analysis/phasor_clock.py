@@ -39,6 +39,19 @@ _PHASES = (8, 5, 3)
 lattice period, then across one step of the pass before either side of its best."""
 
 
+def search_range(clock: RateObservation) -> tuple[float, float]:
+    """The rates the phasors may choose from: within ``_REFINE_SIGMAS`` of a clock the
+    holds timed, wherever it lies (an RC oscillator may be off by percent); one they could
+    not tell from zero within ``POOL_SIGMAS`` of their median, inside ``CLOCK_RANGE``.
+    The clamp is for the second only: applied to a clock of −21,000 ppm the holds timed,
+    it turned the range inside out and the search chose −3,083 ppm."""
+    if abs(clock.rate) > POOL_SIGMAS * clock.sigma:
+        reach = _REFINE_SIGMAS * clock.sigma
+        return clock.rate - reach, clock.rate + reach
+    reach = POOL_SIGMAS * clock.sigma
+    return max(clock.rate - reach, -CLOCK_RANGE), min(clock.rate + reach, CLOCK_RANGE)
+
+
 def clock_from_phasors(held: Sequence[Measured], clock: RateObservation,
                        wraps: Sequence[int]) -> ClockPhase:
     """The run's clock as the phasors see it: near the holds' own (``clock``), the rate
@@ -88,9 +101,7 @@ def clock_from_phasors(held: Sequence[Measured], clock: RateObservation,
         return chi2 / scale + ((phase.rate - clock.rate) / clock.sigma) ** 2
 
     tried: list[tuple[ClockPhase, tuple[float, int]]] = []
-    reach = (_REFINE_SIGMAS if seen else POOL_SIGMAS) * clock.sigma
-    low = max(clock.rate - reach, -CLOCK_RANGE)
-    high = min(clock.rate + reach, CLOCK_RANGE)
+    low, high = search_range(clock)
     width, anchor, scale = 0.5, None, 1.0
     best = ClockPhase.of(clock.rate, wraps)
     for fine, (rates, phases) in enumerate(zip(_RATES, _PHASES, strict=True)):
