@@ -294,6 +294,11 @@ POOL_SIGMAS: Final = 5.0
 """Standard errors the pooled rate must stand clear of zero to be taken as a clock."""
 MIN_POOLED: Final = 3
 """Holds that must have timed a rate before any is pooled."""
+MAX_RATE: Final = 5000e-6
+"""The fastest clock a hold's timing is believed for (u per sample): beyond it a hold of
+200 samples would hold a wrap or more, which this model has at most one of. A ringing
+hold that times such a rate timed its transient: on one draw, holds of a 137 ppm unit
+pooled to −21,058 ppm."""
 
 
 def pooled_rate(observations: Sequence[RateObservation]) -> float:
@@ -317,13 +322,13 @@ def pooled_clock(observations: Sequence[RateObservation]) -> RateObservation:
     each σ finds none.
     """
     none = RateObservation(0.0, math.inf)
-    rates = np.array([o.rate for o in observations if math.isfinite(o.sigma)])
+    timed = [o for o in observations if math.isfinite(o.sigma) and abs(o.rate) <= MAX_RATE]
+    rates = np.array([o.rate for o in timed])
     if rates.size < MIN_POOLED:
         return none
     centre = float(np.median(rates))
     spread = 1.4826 * float(np.median(np.abs(rates - centre)))
     # The median's standard error, never below what the holds' own noise allows.
-    noise = math.sqrt(1.0 / sum(1.0 / o.sigma ** 2 for o in observations
-                                if math.isfinite(o.sigma)))
+    noise = math.sqrt(1.0 / sum(1.0 / o.sigma ** 2 for o in timed))
     sigma = max(1.2533 * spread / math.sqrt(rates.size), noise)
     return RateObservation(centre, sigma)

@@ -132,6 +132,15 @@ def test_one_hold_s_transient_is_not_taken_for_the_clock() -> None:
     assert pooled_rate([RateObservation(0.0, math.inf)] * 5) == 0.0
 
 
+def test_a_rate_beyond_what_a_hold_can_follow_is_a_transient_not_a_clock() -> None:
+    # Ringing holds of a 137 ppm unit once pooled to −21,058 ppm: a clock that fast would
+    # wrap within every hold. Such holds are left out; alone, they pool to nothing.
+    wild = [RateObservation(r * 1e-6, 300e-6) for r in (-21_058, -18_300, -25_900, -9_700)]
+    assert pooled_rate(wild) == 0.0
+    settled = [RateObservation(r * 1e-6, 8e-6) for r in (131, 140, 129, 145, 138)]
+    assert pooled_rate(wild + settled) == pytest.approx(138e-6, abs=5e-6)
+
+
 def test_a_weak_or_short_hold_times_nothing() -> None:
     y, angle = hold(np.zeros(40))
     assert math.isinf(observe_rate(y, angle, SPP).sigma)
