@@ -505,7 +505,7 @@ class _Calibration:
         measured, rejected = measure(timeline, AnalysisOptions(
             settle_periods=float(settle), clock_seen=tuple(self.clock_seen),
             first_sample=first, wraps_seen=tuple(self.wraps)))
-        self._follow_clock(measured, first)
+        self._follow_clock(measured)
         best: dict[Trims, Measured] = {}
         for m in measured:
             seg = m.segment
@@ -527,13 +527,14 @@ class _Calibration:
             )
         return found
 
-    def _follow_clock(self, measured: Sequence[Measured], first: int) -> None:
+    def _follow_clock(self, measured: Sequence[Measured]) -> None:
         """Keep what these holds saw of the sensor's clock for the run's later holds."""
         self.clock_seen.extend(m.clock_observed for m in measured
                                if m.clock_observed is not None)
         if measured:
             self.clock_rate = measured[0].clock_rate
-        self.wraps.extend(first + m.wrap_at for m in measured if m.wrap_at is not None)
+        self.wraps.extend(m.first_sample + m.wrap_at for m in measured
+                          if m.wrap_at is not None)
 
     def _clock_phase(self, held: Sequence[Measured]) -> ClockPhase | None:
         """The sensor's clock over the run so far, as the holds timed it and the phasors

@@ -45,7 +45,7 @@ def search_range(clock: RateObservation) -> tuple[float, float]:
     not tell from zero within ``POOL_SIGMAS`` of their median, inside ``CLOCK_RANGE``.
     The clamp is for the second only: applied to a clock of −21,000 ppm the holds timed,
     it turned the range inside out and the search chose −3,083 ppm."""
-    if abs(clock.rate) > POOL_SIGMAS * clock.sigma:
+    if clock.clear_of_zero:
         reach = _REFINE_SIGMAS * clock.sigma
         return clock.rate - reach, clock.rate + reach
     reach = POOL_SIGMAS * clock.sigma
@@ -70,7 +70,7 @@ def clock_from_phasors(held: Sequence[Measured], clock: RateObservation,
     """
     if not math.isfinite(clock.sigma) or clock.sigma <= 0.0:
         return ClockPhase(0.0, None)
-    seen = abs(clock.rate) > POOL_SIGMAS * clock.sigma
+    seen = clock.clear_of_zero
 
     # The maps' terms are chosen once, on the holds' own clock, and kept for every rate
     # tried: a term that came and went with the rate would move the misfit by more than

@@ -117,12 +117,19 @@ class Measured:
         h1, h2 = h.h(1), h.h(2)
         if clock is not None and clock.rate:
             seg = self.segment
-            index = self.first_sample + seg.start + np.arange(seg.samples, dtype=np.float64)
-            own = None if self.wrap_at is None else self.first_sample + self.wrap_at
-            late = float(clock.delays(index, own).mean()) - self.reference_delay
-            turn = -seg.angle_per_sample * late
+            late = float(_on_clock(clock, seg, self.first_sample, self.wrap_at).mean())
+            turn = -seg.angle_per_sample * (late - self.reference_delay)
             h1, h2 = h1 * cmath.exp(1j * turn), h2 * cmath.exp(2j * turn)
         return TrimPoint(self.segment.trims, h1, h.var(1), h2, h.var(2), self.rotor)
+
+
+def _on_clock(clock: ClockPhase, seg: Segment, first_sample: int, wrap_at: int | None
+              ) -> NDArray[np.float64]:
+    """Each sample's delay in a segment of a timeline that began at the run's sample
+    ``first_sample``, on the run's ``clock``; ``wrap_at`` the wrap the hold placed itself
+    (timeline index)."""
+    index = first_sample + seg.start + np.arange(seg.samples, dtype=np.float64)
+    return clock.delays(index, None if wrap_at is None else first_sample + wrap_at)
 
 
 @dataclass(frozen=True)
@@ -228,8 +235,7 @@ def measure(
         delays = None if timing is None else timing.delays
         own = None if timing is None or timing.wrap_at is None else seg.start + timing.wrap_at
         if phase is not None:
-            index = options.first_sample + seg.start + np.arange(seg.samples, dtype=np.float64)
-            delays = phase.delays(index, None if own is None else options.first_sample + own)
+            delays = _on_clock(phase, seg, options.first_sample, own)
         try:
             h = seg.harmonics(window, options.orders, white_noise=options.white_noise,
                               delays=delays)

@@ -69,6 +69,11 @@ class RateObservation:
     rate: float
     sigma: float
 
+    @property
+    def clear_of_zero(self) -> bool:
+        """Whether the rate stands ``POOL_SIGMAS`` standard errors clear of zero: a clock."""
+        return abs(self.rate) > POOL_SIGMAS * self.sigma
+
 
 @dataclass(frozen=True)
 class Delays:
@@ -305,7 +310,7 @@ def pooled_rate(observations: Sequence[RateObservation]) -> float:
     """The clock the holds agree on (u per sample), or 0 unless it is clear of zero
     (``pooled_clock``)."""
     pooled = pooled_clock(observations)
-    return pooled.rate if abs(pooled.rate) > POOL_SIGMAS * pooled.sigma else 0.0
+    return pooled.rate if pooled.clear_of_zero else 0.0
 
 
 def pooled_clock(observations: Sequence[RateObservation]) -> RateObservation:
