@@ -163,6 +163,10 @@ class Verification:
 
     dwell_periods: int
     settle_periods: int | None = None
+    # The longest the station may go on measuring a unit whose two halves of the hold
+    # still differ where it could decide the verdict (None, as in recipes written before
+    # the key: the one hold); each further hold is ``dwell_periods`` long.
+    max_dwell_periods: int | None = None
 
 
 @dataclass(frozen=True)
@@ -384,7 +388,15 @@ def _read_verification(t: TomlTable) -> Verification:
         dwell_periods=t.integer("dwell_periods", 3, 10000),
         settle_periods=(t.integer("settle_periods", 0, 1000) if t.has("settle_periods")
                         else None),
+        max_dwell_periods=(t.integer("max_dwell_periods", 3, 10000)
+                           if t.has("max_dwell_periods") else None),
     )
+    longest = verification.max_dwell_periods
+    if (longest is not None and t.valid("dwell_periods", "max_dwell_periods")
+            and longest < verification.dwell_periods):
+        t.problem("max_dwell_periods",
+                  f"must be >= {t.name('dwell_periods')} ({verification.dwell_periods}): "
+                  f"the first hold alone measures that long, got {longest}")
     t.finish()
     return verification
 

@@ -116,7 +116,8 @@ def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> Non
     assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (4, 16)
     assert recipe.hold_periods() == 6
     # Short holds for the sweep; the verification settles as long as the paper's points.
-    assert recipe.verification == Verification(dwell_periods=10, settle_periods=4)
+    assert recipe.verification == Verification(dwell_periods=6, settle_periods=4,
+                                               max_dwell_periods=24)
     assert reference.verification == Verification(dwell_periods=20, settle_periods=None)
     assert reference.motion.settle_periods == 4
     assert recipe.product == reference.product
@@ -298,6 +299,8 @@ RANGE_CASES: list[tuple[str, str, object]] = [
     ("self_check", "max_noise_mps2", 0),
     ("verification", "dwell_periods", 2),
     ("verification", "dwell_periods", 10001),
+    ("verification", "max_dwell_periods", 2),
+    ("verification", "max_dwell_periods", 10001),
     ("limits", "max_h1_after_mps2", 0),
     ("limits", "max_h2_after_mps2", -0.1),
     ("limits", "min_reduction_db", -1),
@@ -348,6 +351,20 @@ def test_a_verification_without_its_own_settle_settles_as_a_sweep_hold_does() ->
     assert parse_recipe(to_toml(data), source=SOURCE).verification.settle_periods is None
     data["verification"]["settle_periods"] = 1001
     assert only_problem(data).startswith("verification.settle_periods: must be ")
+
+
+def test_a_verification_goes_on_measuring_only_where_its_recipe_says_how_long() -> None:
+    data = coherent()
+    data["verification"].pop("max_dwell_periods", None)
+    # A recipe written before the key: the one hold, as it always was.
+    assert parse_recipe(to_toml(data), source=SOURCE).verification.max_dwell_periods is None
+    data["verification"]["max_dwell_periods"] = 40
+    assert parse_recipe(to_toml(data), source=SOURCE).verification.max_dwell_periods == 40
+    data["verification"]["max_dwell_periods"] = data["verification"]["dwell_periods"] - 1
+    assert only_problem(data) == (
+        "verification.max_dwell_periods: must be >= verification.dwell_periods "
+        f"({data['verification']['dwell_periods']}): the first hold alone measures that "
+        f"long, got {data['verification']['dwell_periods'] - 1}")
 
 
 def test_a_magnitude_sweep_may_hold_its_points_longer_than_the_star_does() -> None:

@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.analysis.harmonics import DecayFit, SteadyProjection
-from station.analysis.segments import Segment
+from station.analysis.segments import Segment, Settling, halves_shift
 from station.core import Mapper
 
 RATE_RANGE = 3.0
@@ -324,3 +324,69 @@ def measured_poles(members: list[Segment], windows: list[SteadyProjection],
     if float(before @ before - after @ after) <= PARAMETER_COST * size * noise:
         return None
     return ring(fit.x)
+
+
+# --------------------------------------------------------------------------- without a model
+FOUND_RATES_PER_S = np.geomspace(2.0, 80.0, 7)
+"""Decay rates (1/s) a ring is looked for at where no model gives one: slower rings are
+steady over a hold, faster ones are over within a calibration's settle."""
+FOUND_FREQUENCIES = 36
+"""...and frequencies, log-spaced from a tenth of the electrical frequency to 0.4 of
+the sampling rate."""
+FOUND_COST = 4.0
+"""Noise variances of residual each parameter of a ring found without a model (its pole,
+and each hold's amplitudes at the pole and its sidebands) must remove for the ring to be
+kept: twice the Akaike price, because the grid tries some 250 poles and keeps the best."""
+
+
+def settling_holds(signal: NDArray[np.float64], segments: list[Segment],
+                   orders: tuple[int, ...] = (1, 2)) -> list[int]:
+    """Which holds, not already known to ring, were still settling over their window at
+    any of ``orders`` (``halves_shift``)."""
+    out = []
+    for i, seg in enumerate(segments):
+        halves = None if seg.ringing else seg.halves(signal[seg.start:seg.stop], max(orders))
+        if halves is not None and any(halves_shift(*halves, k) > 0.0 for k in orders):
+            out.append(i)
+    return out
+
+
+def find_ringing(signal: NDArray[np.float64], segments: list[Segment], sync_period_s: float
+                 ) -> list[Segment]:
+    """``segments`` with the holds still settling given the ring they share, where no
+    model of the chain says where to look (a calibration knows none): a belt's load mode
+    excited by every trim step rings through a calibration's short holds, and its phasors
+    moved by 11-22 standard errors between the two halves of every hold (development seed
+    2046250336: 9.8 mA from its optimum). The ring is looked for on a grid of decay rates
+    and frequencies jointly over the settling holds (one load, one mode), and from the
+    best of it ``refine_ringing`` measures it as it would a model's (and each hold's own
+    near it); a ring that explains too little to be told from the noise is kept as the
+    grid found it, fitted out at a cost in variance but no bias."""
+    settling = settling_holds(signal, segments)
+    if not settling:
+        return segments
+    members = [segments[i] for i in settling]
+    windows = [_projection(signal[s.start:s.stop], s) for s in members]
+    electrical = abs(members[0].angle_per_sample) / (2.0 * math.pi) / sync_period_s
+    frequencies = np.geomspace(0.1 * electrical, 0.4 / sync_period_s, FOUND_FREQUENCIES)
+    best, least, slowest = None, math.inf, False
+    for rate in FOUND_RATES_PER_S:
+        for hz in frequencies:
+            pole = complex(-rate, 2.0 * math.pi * hz) * sync_period_s
+            total = sum(float(np.sum(w.fit(*s.decays((pole,))).residual ** 2))
+                        for s, w in zip(members, windows, strict=True))
+            if total < least:
+                best, least, slowest = pole, total, rate == FOUND_RATES_PER_S[0]
+    # A ring as slow as the slowest tried is steady over a hold: what it fits is the
+    # hold's own content (near a harmonic, the harmonic itself), not a transient.
+    if best is None or slowest:
+        return segments
+    before = sum(float(np.sum(w.left**2)) for w in windows)
+    columns = sum(2 * len(s.decays((best,))[0]) for s in members) + 2
+    left = sum(w.left.size for w in windows) - sum(w.columns for w in windows) - columns
+    if left <= 0 or before - least < FOUND_COST * columns * least / left:
+        return segments
+    out = list(segments)
+    for i in settling:
+        out[i] = replace(segments[i], ringing=(best,), settling=Settling.RINGING)
+    return refine_ringing(signal, out)

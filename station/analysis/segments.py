@@ -19,6 +19,7 @@ from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from station.analysis.harmonics import Harmonics, demodulate, period_phasors
 from station.analysis.timeline import Timeline
@@ -215,6 +216,32 @@ class Segment:
     def angle_per_sample(self) -> float:
         """dθ/dn in radians, signed with the direction of rotation."""
         return 2 * math.pi * self.microsteps_per_sample / (4 * self.microsteps_per_fullstep)
+
+    def part(self, first_period: int, periods: int) -> Segment:
+        """Whole periods ``first_period`` … of this segment, on the same fitted line and
+        the same ringing (its decays still run from the hold's change)."""
+        spp = self.samples_per_period
+        start = self.start + round(first_period * spp)
+        return replace(self, start=start, stop=start + round(periods * spp), periods=periods,
+                       position0=self.position0 + self.microsteps_per_sample * (start - self.start))
+
+    def halves(self, window: NDArray[np.float64], orders: int, *, white_noise: bool = False,
+               delays: NDArray[np.float64] | None = None) -> tuple[Harmonics, Harmonics] | None:
+        """``harmonics`` of the segment's first and second half (``window`` its samples,
+        ``delays`` theirs): whether it was still settling (``halves_shift``). None for a
+        segment shorter than two periods or a half too lossy to demodulate."""
+        if self.periods < 2:
+            return None
+        first = self.periods // 2
+        out = []
+        for part in (self.part(0, first), self.part(first, self.periods - first)):
+            lo, hi = part.start - self.start, part.stop - self.start
+            try:
+                out.append(part.harmonics(window[lo:hi], orders, white_noise=white_noise,
+                                          delays=None if delays is None else delays[lo:hi]))
+            except ValueError:
+                return None
+        return out[0], out[1]
 
     def electrical_angle(self) -> NDArray[np.float64]:
         return _electrical_angle(self.position0, self.microsteps_per_sample, self.samples,
@@ -923,3 +950,41 @@ def steady_segments(
             )
         )
     return segments, rejected
+
+
+HALVES_SIGMAS = 3.0
+"""Standard errors (the quieter half's noise) a segment's two halves' phasors must lie
+apart for it to count as still settling."""
+HALVES_CHANCE = 1e-4
+"""...or how rarely noise alone would leave its first half's residual variance that much
+above its second's (the F test of the two): a half of two periods at 1 kHz keeps about 67
+degrees of freedom beside the orders fitted, and the ratio must then exceed 2.6."""
+
+
+def halves_shift(early: Harmonics, late: Harmonics, order: int) -> float:
+    """How far a segment was still moving at ``order`` (m/s²), judged from its two halves;
+    0 where they agree within the noise.
+
+    A transient that outlasts the settle shows two ways: the halves' phasors lie apart
+    beyond the noise (a ring near that order), or the first half leaves much more
+    unexplained than the second (a ring elsewhere, which a half of a few periods
+    partly averages out of its phasors but not out of its residual; its size is the part
+    of the first half's residual the second no longer has). The noise is the quieter
+    half's, because a ring inflates the other's.
+    """
+    apart = abs(late.h(order) - early.h(order))
+    noise = math.sqrt(2.0 * min(late.var(order), early.var(order)))
+    moved = apart if apart > HALVES_SIGMAS * noise else 0.0
+    if _louder(early, late):
+        moved = max(moved, math.sqrt(early.residual_rms**2 - late.residual_rms**2))
+    return moved
+
+
+def _louder(early: Harmonics, late: Harmonics) -> bool:
+    """Whether the first half's noise variance exceeds the second's beyond chance."""
+    dof = [h.samples_used * h.residual_rms**2 / h.noise_variance
+           if h.noise_variance > 0.0 else 0.0 for h in (early, late)]
+    if min(dof) < 1.0:
+        return False
+    ratio = early.noise_variance / late.noise_variance
+    return bool(ratio > stats.f.isf(HALVES_CHANCE, dof[0], dof[1]))
