@@ -121,6 +121,20 @@ def test_coherent_sigma_matches_the_scatter_over_noise_seeds() -> None:
     assert np.all(np.abs(pull.mean(axis=0)) < 0.3), pull.mean(axis=0)
 
 
+def test_points_that_claim_far_more_noise_than_they_scatter_by_are_judged_by_their_scatter(
+) -> None:
+    """A rough unit's holds claimed ten times the variance their points scattered by:
+    the σ follows the scatter, at the confidence the fits are judged by (an upper bound
+    on it), where taken at their word the pulls would spread by 1/√10 = 0.32."""
+    claimed = [coherent_estimate([replace(p, h1_var=10 * p.h1_var, h2_var=10 * p.h2_var)
+                                  for p in points(cross_design(), seed=s)])
+               for s in range(60)]
+    pulls = np.array([errors(e.trims)[:2] / [e.sigma.offset_a_mA, e.sigma.offset_b_mA]
+                      for e in claimed])
+    spread = pulls.std(axis=0)
+    assert np.all(spread > 0.5) and np.all(spread < 1.0), spread
+
+
 def test_coherent_estimate_uses_the_mixing_term_when_h2_bends_with_h1() -> None:
     estimate = coherent_estimate(points(cross_design(), seed=1))
     h2 = next(a for a in estimate.affine if a.order == 2)
