@@ -395,7 +395,7 @@ def _quick_recipe(folder: Path) -> Path:
     for old, new in (('name = "default"', 'name = "quick"'),
                      ("offset_steps_mA = [100, 30, 10]", "offset_steps_mA = [100]"),
                      ("gain_steps = [1000, 300, 100]", "gain_steps = [1000]"),
-                     ("dwell_periods = 6 ", "dwell_periods = 4 ")):
+                     ("dwell_periods = 4                # 0.2", "dwell_periods = 3 # 0.15")):
         assert old in text, old
         text = text.replace(old, new, 1)
     path = folder / "quick.toml"

@@ -117,7 +117,7 @@ def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> Non
     assert recipe.hold_periods() == 6
     # Short holds for the sweep; the verification settles briefly and goes on measuring
     # while a unit still rings (``max_dwell_periods``).
-    assert recipe.verification == Verification(dwell_periods=6, settle_periods=2,
+    assert recipe.verification == Verification(dwell_periods=4, settle_periods=2,
                                                max_dwell_periods=24)
     assert reference.verification == Verification(dwell_periods=20, settle_periods=None)
     assert reference.motion.settle_periods == 4
