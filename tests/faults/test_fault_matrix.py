@@ -152,10 +152,12 @@ def test_a_store_refused_after_the_trims_were_stored_keeps_the_record_truthful(
     """The EEPROM breaks between the trims' store and the calibration record's: the new
     trims stay stored (the rollback's store is refused too) and the record says so."""
     db = tmp_path / "station.db"
-    probe = calibrate(Station(db, SIM_SPEC, "tester"), "SN7").run
+    # The same unit, calibrated apart, times its own verification: the last 0.5 s of its
+    # motion (spin-up, settle and the first hold), longer where it went on measuring.
+    probe = calibrate(Station(tmp_path / "probe.db", SIM_SPEC, "tester"), SERIAL).run
     assert probe.verdict is Verdict.PASS and probe.motion_s is not None
-    # Armed during the verification hold: after the trims' store, before the record's.
-    late = Fault(FaultKind.EEPROM_FAILURE, probe.motion_s - 0.5)
+    # Armed during the verification: after the trims' store, before the record's.
+    late = Fault(FaultKind.EEPROM_FAILURE, probe.motion_s - 0.3)
     run = calibrate(Station(db, _spec(SIM_SPEC, late), "tester"), SERIAL).run
     bench = benches_closed[-1]
     assert run.verdict is Verdict.ERROR and "0x1010:01" in (run.reason or "")
