@@ -47,7 +47,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from station.analysis.harmonics import DecayFit, SteadyProjection
-from station.analysis.segments import Segment, Settling, halves_shift
+from station.analysis.segments import SETTLE_ORDERS, Segment, Settling, halves_shift
 from station.core import Mapper
 
 RATE_RANGE = 3.0
@@ -340,7 +340,7 @@ kept: twice the Akaike price, because the grid tries some 250 poles and keeps th
 
 
 def settling_holds(signal: NDArray[np.float64], segments: list[Segment],
-                   orders: tuple[int, ...] = (1, 2)) -> list[int]:
+                   orders: tuple[int, ...] = SETTLE_ORDERS) -> list[int]:
     """Which holds, not already known to ring, were still settling over their window at
     any of ``orders`` (``halves_shift``)."""
     out = []
@@ -360,8 +360,11 @@ def find_ringing(signal: NDArray[np.float64], segments: list[Segment], sync_peri
     2046250336: 9.8 mA from its optimum). The ring is looked for on a grid of decay rates
     and frequencies jointly over the settling holds (one load, one mode), and from the
     best of it ``refine_ringing`` measures it as it would a model's (and each hold's own
-    near it); a ring that explains too little to be told from the noise is kept as the
-    grid found it, fitted out at a cost in variance but no bias."""
+    near it). A ring that does not remove ``FOUND_COST`` noise variances per parameter
+    is not fitted at all; one that does, but that the refinement cannot measure more
+    closely, is fitted out where the grid found it, at a cost in variance but no bias.
+    Only the holds found settling are refined: holds already ringing at a model's poles
+    were measured before."""
     settling = settling_holds(signal, segments)
     if not settling:
         return segments
@@ -386,7 +389,9 @@ def find_ringing(signal: NDArray[np.float64], segments: list[Segment], sync_peri
     left = sum(w.left.size for w in windows) - sum(w.columns for w in windows) - columns
     if left <= 0 or before - least < FOUND_COST * columns * least / left:
         return segments
+    refined = refine_ringing(signal, [replace(s, ringing=(best,), settling=Settling.RINGING)
+                                      for s in members])
     out = list(segments)
-    for i in settling:
-        out[i] = replace(segments[i], ringing=(best,), settling=Settling.RINGING)
-    return refine_ringing(signal, out)
+    for i, seg in zip(settling, refined, strict=True):
+        out[i] = seg
+    return out
