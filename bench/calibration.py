@@ -19,7 +19,11 @@ counted apart, where trims within the accuracy asked of the station (``RMS_OFFSE
 that meets its accuracy can decide it (its irreducible H2 at 0.2455 m/s² against a limit
 of 0.25 reads 0.2526 m/s² a gain unit or three away). Accuracy is the
 estimate's distance from that optimum over the units that should pass, whether or not
-the recipe then stored it. Motion time is the simulated time the SYNC clock ran, what a
+the recipe then stored it. It is also set against each run's own σ: the RMS of error
+over σ (the pull) says whether the σ the limits judge is honest, and a unit whose σ
+exceeds a third of the worst error asked is noise-limited (``RESOLVED_SIGMA_mA``), the
+accuracy given again over the others, with the motion that would bring every unit
+within it. Motion time is the simulated time the SYNC clock ran, what a
 calibration costs on a line; wall time is what the station spent per unit here, two
 units at a time, one per core. A run whose recording holds samples at the sensor's full
 scale must say so in its warnings or reason; how many units clipped, and how many did so
@@ -94,6 +98,15 @@ HALVED_TARGET = 0.5
 """The default's motion against ``BEFORE``'s on the same units (issue 16: half of it)."""
 WORST_OFFSET_mA, WORST_GAIN = 1.0, 10.0
 RMS_OFFSET_mA, RMS_GAIN = 0.3, 3.0
+RESOLVED_SIGMA_mA = WORST_OFFSET_mA / 3.0
+"""A unit's own 1σ above this cannot be held within ``WORST_OFFSET_mA`` at 3σ by any
+estimate from the holds it had: its error is the sensor's noise over its sensitivity
+(belts, whose load moves little per milliampere of offset), not the station's bias. The
+accuracy figures are also given over the units within it, and what holds long enough
+for every unit to reach it would cost."""
+PULL_RMS_TARGET = 1.5
+"""Errors over the run's own σ (the larger of each): near 1 when the σ that the limits
+judge is honest, well above it when the estimate is biased beyond what it claims."""
 MOTION_TARGET_S = {DEFAULT: 7.0, PAPER: math.inf, MODBUS: 15.0}
 MOTION_RATIO_TARGET = 0.5
 """The default recipe's motion against the paper's, on the same units."""
@@ -120,6 +133,7 @@ class Outcome:
     clipped: int  # samples of the run's recording with an axis at full scale
     clipping_said: bool  # whether the run's warnings or reason say so
     marginal: bool = False  # the verdict is not decided within the accuracy asked
+    offset_sigma_mA: float = math.nan  # the run's own 1σ, the larger offset's; nan without
 
     @property
     def silent_clipping(self) -> bool:
@@ -230,9 +244,11 @@ def _calibrate_one(seed: int, leg: str, recipe: str) -> Outcome:
         offset = max(abs(got.offset_a_mA - truth.offset_a_mA),
                      abs(got.offset_b_mA - truth.offset_b_mA))
         gain = max(abs(got.gain_a - truth.gain_a), abs(got.gain_b - truth.gain_b))
+    sigma = (max(run.uncertainty.offset_a_mA, run.uncertainty.offset_b_mA)
+             if run.uncertainty is not None else math.nan)
     return Outcome(line, leg, str(run.verdict), run.reason or "", plant.should_pass,
                    run.motion_s if run.motion_s is not None else math.nan, wall, offset, gain,
-                   clipped, said, plant.marginal)
+                   clipped, said, plant.marginal, sigma)
 
 
 def _run_all(seeds: Sequence[int], subset: int) -> list[Outcome]:
@@ -289,6 +305,7 @@ def _leg_records(leg: str, judged: list[Outcome]) -> list[BenchRecord]:
                     RMS_OFFSET_mA, Goal.AT_MOST),
         BenchRecord(f"calibration_gain_error_rms_{leg}", _rms(gains), "1/10000", RMS_GAIN,
                     Goal.AT_MOST),
+        *_noise_records(leg, measured),
         # Issue 16: an estimate is never made silently from clipped holds.
         BenchRecord(f"calibration_clipped_units_{leg}", float(sum(o.clipped > 0 for o in outcomes)),
                     "units", math.inf, Goal.AT_MOST),
@@ -298,6 +315,29 @@ def _leg_records(leg: str, judged: list[Outcome]) -> list[BenchRecord]:
                     "s/unit", MOTION_TARGET_S[leg], Goal.AT_MOST),
         BenchRecord(f"calibration_wall_s_{leg}", _mean([o.wall_s for o in outcomes]),
                     "s/unit", math.inf, Goal.AT_MOST),
+    ]
+
+
+def _noise_records(leg: str, measured: list[Outcome]) -> list[BenchRecord]:
+    """How much of the error is the noise each unit's own σ owns up to (see
+    ``RESOLVED_SIGMA_mA``)."""
+    sigma = [o for o in measured if o.offset_sigma_mA > 0.0]
+    resolved = [o.offset_error_mA for o in sigma if o.offset_sigma_mA <= RESOLVED_SIGMA_mA]
+    pulls = [o.offset_error_mA / o.offset_sigma_mA for o in sigma]
+    # Motion scales the holds' time, and σ² falls as 1/time: an upper figure, since
+    # spin-ups and the verification would not lengthen.
+    needed = [o.motion_s * max(1.0, (o.offset_sigma_mA / RESOLVED_SIGMA_mA) ** 2) for o in sigma]
+    return [
+        BenchRecord(f"calibration_noise_limited_units_{leg}",
+                    float(len(sigma) - len(resolved)), "units", math.inf, Goal.AT_MOST),
+        BenchRecord(f"calibration_offset_error_max_mA_resolved_{leg}",
+                    max(resolved, default=math.nan), "mA", WORST_OFFSET_mA, Goal.AT_MOST),
+        BenchRecord(f"calibration_offset_error_rms_mA_resolved_{leg}", _rms(resolved), "mA",
+                    RMS_OFFSET_mA, Goal.AT_MOST),
+        BenchRecord(f"calibration_offset_pull_rms_{leg}", _rms(pulls), "error/sigma",
+                    PULL_RMS_TARGET, Goal.AT_MOST),
+        BenchRecord(f"calibration_motion_for_resolved_s_{leg}", _mean(needed), "s/unit",
+                    math.inf, Goal.AT_MOST),
     ]
 
 
