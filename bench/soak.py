@@ -42,12 +42,12 @@ from typing import ClassVar
 
 from bench.record import BenchRecord, Goal
 from station import benches
-from station.benches import SIM_SPEC, SimSettings
+from station.benches import SIM_SPEC
 from station.paths import HOME_ENV
 from station.runs import Run, Verdict
 from station.service import Station, calibrate
 from station.sim.bench import SimBench, TrimsLeft
-from station.sim.faults import Fault, FaultKind
+from station.simsettings import Fault, FaultKind, SimSettings
 from station.store import RunFilter, Store
 
 RUNS = 200

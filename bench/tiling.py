@@ -19,10 +19,9 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.canbus import SYNC_COUNTER_OVERFLOW
-from drivers.cia301 import SYNC_COB_ID, TPDO1_COB_BASE
 from station.analysis.reader import read_recording
 from station.analysis.timeline import PAYLOAD_BYTES
+from station.cia301 import SYNC_COB_ID, SYNC_COUNTER_OVERFLOW, TPDO1_COB_BASE
 from station.core import SENSOR_COUNTER_MODULUS
 from station.recording import (
     FRAMES_RECORDED_KEY,

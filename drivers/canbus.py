@@ -33,10 +33,11 @@ from canopen.objectdictionary import ObjectDictionaryError, ODVariable
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from drivers.base import DeviceIdentity, retried
-from drivers.cia301 import (
+from station.cia301 import (
     ABORT_MEANINGS,
     NMT_COB_ID,
     SYNC_COB_ID,
+    SYNC_COUNTER_OVERFLOW,
     TPDO1_COB_BASE,
     TPDO2_COB_BASE,
     NmtCommand,
@@ -63,8 +64,6 @@ DEFAULT_RECEIVE_POLL_S = 0.1
 
 SYNC_PRODUCER = "SYNC producer"
 """How errors of the station's own SYNC production name their source."""
-SYNC_COUNTER_OVERFLOW = 240
-"""Object 0x1019 on the bench's devices: the counter runs 1..240, then 1 again."""
 DEFAULT_SYNC_PERIOD_S = 0.001
 DEFAULT_SYNC_TIMEOUT_S = 0.5
 DEFAULT_MAX_MISSING_CYCLES = 20

@@ -29,9 +29,9 @@ from drivers.canbus import (
     send_nmt,
     start_node,
 )
-from drivers.cia301 import NmtCommand, NmtState, Signature
 from drivers.cia402 import StateMachine
 from drivers.eds import DeviceKind, load_od
+from station.cia301 import NmtCommand, NmtState, Signature
 from station.core import Trims
 from station.errors import DeviceError, DeviceStateError, DeviceTimeout, StationError
 

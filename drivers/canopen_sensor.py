@@ -28,8 +28,8 @@ from drivers.canbus import (
     detach_remote_node,
     start_node,
 )
-from drivers.cia301 import TPDO1_COB_BASE
 from drivers.eds import DeviceKind, load_od
+from station.cia301 import TPDO1_COB_BASE
 from station.core import SENSOR_COUNTER_MODULUS, SENSOR_RANGES_G
 from station.errors import DeviceStateError, InputError
 

@@ -17,6 +17,7 @@ rehearses a fault.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import tomllib
@@ -26,7 +27,7 @@ from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Final
+from typing import TYPE_CHECKING, Any, Final
 
 import can
 import canopen
@@ -55,12 +56,14 @@ from drivers.modbus_map import (
 from station.analysis.commanded import CommandTiming
 from station.core import Axis, Effect, LoadKind
 from station.errors import DeviceError, InputError
-from station.physics.params import UnitParams
-from station.recording import RecordingMetadata, SimulatedClock
+from station.recorder import SimulatedClock
+from station.recording import RecordingMetadata
 from station.serials import Serial, parse_serial
-from station.sim.bench import SimBench, SimBenchConfig
-from station.sim.faults import COUNTED_KINDS, Fault, FaultKind
+from station.simsettings import COUNTED_KINDS, Fault, FaultKind, SimSettings
 from station.tomltable import TomlTable, toml_error
+
+if TYPE_CHECKING:
+    from station.sim.bench import SimBench
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +74,10 @@ SIM_MODBUS_BENCH = "sim-modbus"
 BENCH_ENV = "STATION_BENCH"
 DEFAULT_STATION_ID = 1
 _RECEIVE_OWN = "receive_own_messages"
+SIMULATOR: Final = "station.sim.bench"
+"""The simulated bench's module, imported only when a bench is simulated (as python-can
+imports an interface's module only when it is named): the runtime never needs the
+simulator, and the simulator builds on the runtime (import-linter holds both)."""
 
 
 class Transport(StrEnum):
@@ -92,21 +99,6 @@ class Fixture:
     gravity_axis: Axis
     radius_m: float
     gear_ratio: float  # load revolutions per motor revolution (ICD.md §5)
-
-
-@dataclass(frozen=True)
-class SimSettings:
-    """The simulated hardware behind a simulated bench."""
-
-    load: LoadKind = LoadKind.DISK
-    unit: str | None = None  # serial on the fixture; None: the unit the operator names
-    effects: frozenset[Effect] | None = None  # None: each unit's own concealed effects
-    noise_ug: float | None = None  # sensor noise density; None: the unit's own
-    seed: int = 0
-    faults: tuple[Fault, ...] = ()  # injected, in simulated time since power-on
-    # A unit of the wide population (``station.sim.population``) on the fixture instead
-    # of the serial's own: calibrated under its own serial, with its own load.
-    drawn: UnitParams | None = None
 
 
 DEFAULT_GUARD_S = 0.02
@@ -467,7 +459,8 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
             network.notifier.add_listener(monitor)
         if spec.sim is not None:
             settings = spec.sim
-            sim_bench = stack.enter_context(SimBench(SimBenchConfig(
+            simulator = importlib.import_module(SIMULATOR)
+            sim_bench = stack.enter_context(simulator.SimBench(simulator.SimBenchConfig(
                 serial=settings.unit or serial.label,
                 load=settings.load if settings.drawn is None else settings.drawn.load,
                 effects=settings.effects,

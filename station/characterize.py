@@ -23,7 +23,7 @@ from station.diagnosis.diagnose import Diagnosis, diagnose
 from station.errors import DeviceStateError, InputError
 from station.procedure import check_identity
 from station.recipes import DEFAULT_RECIPE, load_recipe
-from station.recording import RecordingWriter
+from station.recorder import RecordingWriter
 from station.runner import ProgressCallback, run_schedule
 from station.schedules import CharacterizationPlan, characterization_schedule
 from station.serials import parse_serial

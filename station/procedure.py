@@ -80,7 +80,8 @@ from station.limits import (
     verdict_for,
 )
 from station.recipes import Clipping, CoherentSweep, MagnitudeSweep, PaperSweep, Recipe
-from station.recording import RecordingMetadata, RecordingWriter
+from station.recorder import RecordingWriter
+from station.recording import RecordingMetadata
 from station.runner import Motion
 from station.runs import LimitCheck, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for

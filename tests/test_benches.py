@@ -9,7 +9,6 @@ import can
 import pytest
 
 from drivers.canbus import BusConfig, BusMonitor, bench_tpdo_cob_ids
-from drivers.cia301 import SYNC_COB_ID
 from drivers.modbus_map import ModbusLink
 from station.benches import (
     BENCH_ENV,
@@ -19,15 +18,16 @@ from station.benches import (
     BenchFileError,
     BenchSpec,
     Fixture,
-    SimSettings,
     Transport,
     load_bench,
     open_bench,
     parse_bench,
 )
+from station.cia301 import SYNC_COB_ID
 from station.core import Axis, Effect, LoadKind
 from station.errors import ExitCode, InputError
 from station.serials import parse_serial
+from station.simsettings import SimSettings
 
 REAL = """\
 name = "line3"

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from station.analysis import reader as reader_module
 from station.blf import CanFrames, NotPlainCan, can_frame_chunks
 from station.errors import RecordingError
-from station.recording import RecordingWriter
+from station.recorder import RecordingWriter
 from tests.metadata import icd_metadata
 
 Frames = tuple[NDArray[np.float64], NDArray[np.uint16], NDArray[np.uint8], NDArray[np.uint8]]

@@ -36,6 +36,7 @@ from station.service import Station, calibrate
 from station.sim.bench import SimBench
 from station.sim.population import LineKind, draw_line_unit
 from station.sim.record import describe_unit
+from station.simsettings import SimSettings
 from station.store import Store
 
 OFFSET_TOLERANCE_mA = 3.0
@@ -156,7 +157,7 @@ def test_a_limit_the_unit_cannot_meet_fails_the_unit_and_is_recorded(
 def _drawn_station(db: Path, seed: int) -> tuple[Station, str]:
     """A station whose simulated fixture holds the wide population's unit of ``seed``."""
     unit = draw_line_unit(seed).unit
-    sim = replace(benches.SIM_SPEC.sim or benches.SimSettings(), drawn=unit)
+    sim = replace(benches.SIM_SPEC.sim or SimSettings(), drawn=unit)
     return Station(db, replace(benches.SIM_SPEC, sim=sim), "bench"), unit.serial
 
 
@@ -208,7 +209,7 @@ def test_a_sensor_on_its_own_clock_is_followed_sample_by_sample(db: Path, modbus
     ppm = line.unit.sensor.clock_drift_ppm
     assert -230 < ppm < -220
     spec = benches.SIM_MODBUS_SPEC if modbus else benches.SIM_SPEC
-    sim = replace(spec.sim or benches.SimSettings(), drawn=line.unit)
+    sim = replace(spec.sim or SimSettings(), drawn=line.unit)
     run = calibrate(Station(db, replace(spec, sim=sim), "bench"), line.unit.serial).run
     assert run.verdict is Verdict.PASS, run.reason
     assert run.fit is not None

@@ -15,7 +15,7 @@ from station.analysis.reader import read_recording
 from station.analysis.timeline import Timeline
 from station.capture import FrameCapture
 from station.errors import DeviceError
-from station.recording import RecordingWriter
+from station.recorder import RecordingWriter
 from tests.metadata import icd_metadata
 
 # Hand-written from ICD.md §1-3 (drive node 1, sensor node 16), independent of the module.

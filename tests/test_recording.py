@@ -11,14 +11,8 @@ import pytest
 
 from station.core import Axis
 from station.errors import InputError, RecordingError
-from station.recording import (
-    LogFormat,
-    RecordingMetadata,
-    RecordingWriter,
-    SimulatedClock,
-    metadata_path_for,
-    read_metadata,
-)
+from station.recorder import RecordingWriter, SimulatedClock
+from station.recording import LogFormat, RecordingMetadata, metadata_path_for, read_metadata
 from tests.metadata import icd_metadata
 
 

@@ -24,7 +24,6 @@ import can
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.cia301 import SYNC_COB_ID
 from station.analysis.commanded import (
     DRIVE_COMMANDS_KEY,
     commanded_timeline,
@@ -38,6 +37,7 @@ from station.analysis.timeline import (
     icd_frames,
 )
 from station.blf import CanFrames, NotPlainCan, can_frame_chunks
+from station.cia301 import SYNC_COB_ID
 from station.errors import RecordingError
 from station.recording import (
     FRAMES_RECORDED_KEY,

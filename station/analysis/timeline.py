@@ -14,8 +14,7 @@ from typing import Any, Final
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.canbus import SYNC_COUNTER_OVERFLOW
-from drivers.cia301 import SYNC_COB_ID, TPDO1_COB_BASE, TPDO2_COB_BASE
+from station.cia301 import SYNC_COB_ID, SYNC_COUNTER_OVERFLOW, TPDO1_COB_BASE, TPDO2_COB_BASE
 from station.core import SATURATED_COUNTS, SENSOR_COUNTER_MODULUS
 from station.errors import RecordingError
 from station.recording import RecordingMetadata

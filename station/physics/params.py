@@ -302,106 +302,17 @@ class UnitParams:
         """Physics on this unit that no vocabulary id describes (``UnnamedEffect``)."""
         return self.sensor.unnamed_effects
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready truth: every constant, and each enabled effect with its own.
 
-        ``out_of_vocabulary`` lists, apart from ``effects``, what no id may
-        name (``UnnamedEffect``), so a scorer can tell a missed effect from
-        an honest "unknown".
-        """
-        out: dict[str, Any] = {
-            "serial": self.serial,
-            "serial_number": self.serial_number,
-            "rated_current_mA": self.rated_current_mA,
-            "microsteps": self.microsteps,
-            "rotor_teeth": self.rotor_teeth,
-            "load": self.load.value,
-            "gear_ratio": self.gear_ratio,
-            "sensor_radius_m": self.sensor_radius_m,
-            "kt_Nm_per_A": self.motor.kt_Nm_per_A,
-            "holding_torque_Nm": self.motor.holding_torque_Nm(self.rated_current_mA / 1000.0),
-            "motor": _jsonable(self.motor),
-            "amplifier": _jsonable(self.amplifier),
-            "mechanics": _jsonable(self.mechanics),
-            "sensor": _jsonable(self.sensor),
-            "effects": [
-                {"id": effect.value, "parameters": self._effect_parameters(effect)}
-                for effect in sorted(self.effects)
-            ],
-            "out_of_vocabulary": [
-                {"id": unnamed.value, "parameters": self._unnamed_parameters(unnamed)}
-                for unnamed in sorted(self.unnamed_effects)
-            ],
-        }
-        return out
-
-    def _unnamed_parameters(self, unnamed: UnnamedEffect) -> dict[str, Any]:
-        s = self.sensor
-        match unnamed:
-            case UnnamedEffect.SENSOR_NONLINEARITY:
-                return {"c2": s.nonlinearity_c2, "c3": s.nonlinearity_c3,
-                        "deviation_at_full_scale": abs(s.nonlinearity_c2)
-                        + abs(s.nonlinearity_c3),
-                        "law": "a + c2*a^2/FS + c3*a^3/FS^2 per axis, FS = range_g*g0"}
-            case UnnamedEffect.SENSOR_TILT:
-                return {"tilt_rad": s.tilt_rad, "tilt_deg": math.degrees(s.tilt_rad),
-                        "law": "t' = cos(a)*t + sin(a)*r, r' = cos(a)*r - sin(a)*t"}
-
-    def _effect_parameters(self, effect: Effect) -> dict[str, Any]:
-        m, a, mech, s = self.motor, self.amplifier, self.mechanics, self.sensor
-        match effect:
-            case Effect.FLUX_HARMONICS:
-                return {"phase_a": _jsonable(m.flux_a), "phase_b": _jsonable(m.flux_b),
-                        "Lm1_H": m.Lm1_H}
-            case Effect.DETENT_TORQUE:
-                peaks = {
-                    f"peak_torque_order_{d.order}_Nm": 0.5 * d.order * m.rotor_teeth
-                    * d.amplitude_H * m.field_current_A**2
-                    for d in m.detent
-                }
-                return {"harmonics": _jsonable(m.detent), **peaks}
-            case Effect.RELUCTANCE_TORQUE:
-                return {"L1_H": m.L1_H, "peak_torque_at_rated_Nm": m.rotor_teeth * m.L1_H
-                        * (self.rated_current_mA / 1000.0) ** 2}
-            case Effect.LOAD_RESONANCE:
-                # Imported here: the plant builds on these parameters, not the reverse.
-                from station.physics.plant import modal_analysis  # noqa: PLC0415
-
-                modes = modal_analysis(self, float(self.rated_current_mA))
-                return {**_jsonable(mech.coupling),
-                        "chain_modes_at_rated_current": [
-                            {"frequency_hz": float(m.frequency_hz),
-                             "damping_ratio": float(m.damping_ratio)} for m in modes]}
-            case Effect.CURRENT_DISTORTION:
-                return {"phase_a": _jsonable(a.distortion_a), "phase_b": _jsonable(a.distortion_b)}
-            case Effect.CURRENT_LOOP_LAG:
-                return {"bandwidth_a_hz": a.bandwidth_a_hz, "bandwidth_b_hz": a.bandwidth_b_hz}
-            case Effect.FRICTION:
-                return _jsonable(mech.load_friction)  # type: ignore[no-any-return]
-            case Effect.SENSOR_CLOCK_DRIFT:
-                return {"clock_drift_ppm": s.clock_drift_ppm, "sample_phase": s.sample_phase}
-            case Effect.MAGNETIC_SATURATION:
-                rated_A = self.rated_current_mA / 1000.0
-                return {"saturation_current_A": m.saturation_current_A,
-                        "kt_drop_at_rated": 1.0 - float(m.saturation_factor(rated_A)),
-                        "holding_torque_at_rated_Nm": m.holding_torque_Nm(rated_A)
-                        * float(m.saturation_factor(rated_A)),
-                        "law": "tau_pm * 1/sqrt(1 + (|i|/saturation_current_A)^2)"}
-            case Effect.ROTOR_ECCENTRICITY:
-                return {**_jsonable(m.eccentricity),
-                        "law": "airgap torque * (1 + relative*cos(theta + phase_rad)); "
-                               "rotor load -unbalance_Nm*sin(theta + unbalance_phase_rad)"}
-
-
-def _jsonable(value: Any) -> Any:
+def as_jsonable(value: Any) -> Any:
+    """Constants as JSON values, for a unit's truth file (``station.physics.truth``)."""
     if is_dataclass(value) and not isinstance(value, type):
-        return {f.name: _jsonable(getattr(value, f.name)) for f in fields(value)}
+        return {f.name: as_jsonable(getattr(value, f.name)) for f in fields(value)}
     if isinstance(value, Enum):
         return value.value
     if isinstance(value, tuple | list):
-        return [_jsonable(v) for v in value]
+        return [as_jsonable(v) for v in value]
     if isinstance(value, frozenset | set):
-        return sorted(_jsonable(v) for v in value)
+        return sorted(as_jsonable(v) for v in value)
     if isinstance(value, float | int | str | bool) or value is None:
         return value
     raise TypeError(f"cannot express {type(value).__name__} in the truth file")

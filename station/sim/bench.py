@@ -29,8 +29,8 @@ import canopen
 
 from drivers.base import DriveState, decode_statusword
 from drivers.canbus import DEFAULT_CHANNEL, VIRTUAL_INTERFACE
-from drivers.cia301 import SYNC_COB_ID
 from drivers.modbus_map import DEFAULT_UNIT_ID, ModbusLink
+from station.cia301 import SYNC_COB_ID
 from station.core import NOMINAL_TRIMS, Effect, LoadKind, Trims
 from station.paths import sim_state_dir
 from station.physics.params import UnitParams, derive_unit
@@ -38,9 +38,10 @@ from station.physics.plant import Plant
 from station.serials import parse_serial
 from station.sim import eeprom
 from station.sim.devices import TRIM_KEYS, SensorElement, SimDrive, SimSensor
-from station.sim.faults import Fault, FaultKind, FaultLog, bus_error_frame, bus_off_frame
+from station.sim.faults import FaultLog, bus_error_frame, bus_off_frame
 from station.sim.modbus import DEFAULT_WATCHDOG_S, SimModbusServer
 from station.sim.trajectory import period_us
+from station.simsettings import Fault, FaultKind
 
 _log = logging.getLogger(__name__)
 

@@ -42,6 +42,7 @@ from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, 
 from station.errors import StationError
 from station.paths import HOME_ENV
 from station.physics.params import BeltParams, UnitParams, UnnamedEffect
+from station.physics.truth import unit_truth
 from station.recording import write_json_atomically
 from station.schedules import (
     HZ_RESOLUTION,
@@ -466,7 +467,7 @@ def record_trial(plan: TrialPlan, out: Path, truth: Path) -> Path:
         "center_trims": plan.center.as_dict(),
         "schedule_s": plan.schedule.cycles * 1e-3,
         "sensor_range_g": plan.schedule.sensor_range_g,
-        "unit": plan.unit.to_dict(),
+        "unit": unit_truth(plan.unit),
     })
     return out
 

@@ -36,8 +36,8 @@ from canopen.objectdictionary import ODVariable, datatypes
 from canopen.sdo.exceptions import SdoAbortedError
 
 from drivers.base import DriveState
-from drivers.cia301 import AbortCode, NmtCommand, NmtState, Signature
 from drivers.eds import PERSISTED, DeviceKind, load_od
+from station.cia301 import AbortCode, NmtCommand, NmtState, Signature
 from station.core import (
     GAIN_UNITY,
     NOMINAL_TRIMS,

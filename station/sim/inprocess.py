@@ -56,8 +56,7 @@ from canopen.objectdictionary import ODVariable, datatypes
 from numpy.typing import NDArray
 
 from drivers.base import DriveState
-from drivers.canbus import SYNC_COUNTER_OVERFLOW, check_node_id
-from drivers.cia301 import SYNC_COB_ID
+from drivers.canbus import check_node_id
 from drivers.cia402 import ENABLE_STEPS
 from drivers.eds import DeviceKind, load_od
 from station import __version__
@@ -69,16 +68,15 @@ from station.analysis.timeline import (
     icd_frames,
 )
 from station.benches import Transport
+from station.cia301 import SYNC_COB_ID, SYNC_COUNTER_OVERFLOW
 from station.core import GAIN_LIMITS, SENSOR_COUNTER_MODULUS, SENSOR_RANGES_G, Trims
 from station.errors import InputError
 from station.physics.params import UnitParams
 from station.physics.plant import DriveCommand, Plant
+from station.recorder import FrameLoss, RecordingWriter, SimulatedClock
 from station.recording import (
     FRAMES_RECORDED_KEY,
-    FrameLoss,
     RecordingMetadata,
-    RecordingWriter,
-    SimulatedClock,
     log_format_for,
     metadata_path_for,
 )

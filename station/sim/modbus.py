@@ -45,7 +45,6 @@ from pymodbus.pdu import DecodePDU, ExceptionResponse, ModbusPDU
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.cia301 import AbortCode, Signature
 from drivers.modbus_map import (
     DEFAULT_UNIT_ID,
     FIELDS,
@@ -59,6 +58,7 @@ from drivers.modbus_map import (
     field_at,
     store_value,
 )
+from station.cia301 import AbortCode, Signature
 from station.sim.devices import SimDrive
 
 _log = logging.getLogger(__name__)

@@ -18,18 +18,15 @@ from pathlib import Path
 from typing import Any, Final
 
 from station import __version__
-from station.benches import SIM_SPEC, SimSettings, open_bench
+from station.benches import SIM_SPEC, open_bench
 from station.core import SENSOR_RANGES_G, Effect, LoadKind, Trims
 from station.errors import DeviceStateError, IdentityMismatch, InputError
 from station.paths import sim_state_dir, truth_dir
 from station.physics.optimum import optimal_trims
 from station.physics.params import UnitParams, derive_unit
-from station.recording import (
-    RecordingWriter,
-    log_format_for,
-    metadata_path_for,
-    write_json_atomically,
-)
+from station.physics.truth import unit_truth
+from station.recorder import RecordingWriter
+from station.recording import log_format_for, metadata_path_for, write_json_atomically
 from station.runner import ProgressCallback, run_schedule
 from station.schedules import (
     Schedule,
@@ -39,6 +36,7 @@ from station.schedules import (
 )
 from station.serials import Serial
 from station.sim.eeprom import Eeprom
+from station.simsettings import SimSettings
 
 TRUTH_FORMAT: Final = "hsm-truth/1"
 SYNC_PERIOD_S: Final = 0.001
@@ -250,7 +248,7 @@ def _truth(
             "electrical_hz": OPERATING_POINT.electrical_hz,
         },
         "optimal_trims": operating_optimum(unit).as_dict(),
-        "unit": unit.to_dict(),
+        "unit": unit_truth(unit),
     }
 
 
@@ -267,7 +265,7 @@ def describe_unit(
     optimum = optimal_trims(
         unit, amplitude_mA=amplitude_mA, electrical_hz=electrical_hz, sync_period_s=SYNC_PERIOD_S
     )
-    truth = unit.to_dict()
+    truth = unit_truth(unit)
     stored = Eeprom.peek(sim_state_dir(), serial.label)
     return {
         "serial": serial.label,

@@ -27,7 +27,7 @@ from drivers.canbus import (
     set_pre_operational,
     sync_counter,
 )
-from drivers.cia301 import SYNC_COB_ID, NmtCommand
+from station.cia301 import SYNC_COB_ID, NmtCommand
 from station.errors import DeviceTimeout, InputError
 
 SENSOR_COB = 0x190

@@ -17,13 +17,13 @@ from pathlib import Path
 import pytest
 
 from station import benches
-from station.benches import SIM_MODBUS_SPEC, SIM_SPEC, BenchSpec, SimSettings, parse_bench
+from station.benches import SIM_MODBUS_SPEC, SIM_SPEC, BenchSpec, parse_bench
 from station.core import NOMINAL_TRIMS
 from station.procedure import Step
 from station.runs import Run, Verdict
 from station.service import Station, calibrate
 from station.sim.bench import SimBench, TrimsLeft
-from station.sim.faults import Fault, FaultKind
+from station.simsettings import Fault, FaultKind, SimSettings
 from station.store import Store
 
 SERIAL = "SN123"

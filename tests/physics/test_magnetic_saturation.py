@@ -19,6 +19,7 @@ from station.physics.motor import (
 )
 from station.physics.params import AmplifierParams, derive_unit
 from station.physics.plant import STAIRCASE_LAG_MICROSTEPS, DriveCommand, Plant
+from station.physics.truth import unit_truth
 
 M = 256
 SERIALS = [f"SN{n}" for n in range(2000, 2100)]
@@ -40,7 +41,7 @@ def test_the_drawn_drop_of_the_torque_constant_at_rated_current_is_5_to_20_perce
 
 def test_torque_per_ampere_at_rated_current_is_lower_than_at_low_current_by_the_drop() -> None:
     unit = derive_unit("SN2001", effects=[Effect.MAGNETIC_SATURATION])
-    truth = {e["id"]: e["parameters"] for e in unit.to_dict()["effects"]}
+    truth = {e["id"]: e["parameters"] for e in unit_truth(unit)["effects"]}
     drop = truth["magnetic_saturation"]["kt_drop_at_rated"]
     low = _peak_torque_per_ampere(unit.motor, 0.001)
     rated = _peak_torque_per_ampere(unit.motor, 1.0)
@@ -107,7 +108,7 @@ def test_saturation_softens_the_magnetic_spring_by_the_same_factor() -> None:
 
 def test_the_truth_gives_the_law_and_its_constants() -> None:
     unit = derive_unit("SN2005", effects=[Effect.MAGNETIC_SATURATION])
-    truth = json.loads(json.dumps(unit.to_dict()))
+    truth = json.loads(json.dumps(unit_truth(unit)))
     (entry,) = truth["effects"]
     assert entry["id"] == "magnetic_saturation"
     params = entry["parameters"]

@@ -14,13 +14,14 @@ from station.core import Effect, LoadKind
 from station.errors import InputError
 from station.physics.params import BELT_REDUCTION, derive_unit
 from station.physics.plant import modal_analysis
+from station.physics.truth import unit_truth
 
 SERIALS = [f"SN{n}" for n in range(1000, 1300)]
 
 
 def test_the_same_serial_gives_the_same_unit() -> None:
     assert derive_unit("SN123") == derive_unit("SN123")
-    assert derive_unit("SN123").to_dict() == derive_unit("SN123").to_dict()
+    assert unit_truth(derive_unit("SN123")) == unit_truth(derive_unit("SN123"))
 
 
 def _leaves(doc: Any, path: str = "") -> dict[str, Any]:
@@ -40,11 +41,12 @@ def test_the_unit_does_not_depend_on_the_process() -> None:
     other threads or kernels (seen in CI: 96.94131465065902 against ...897 Hz), so those
     agree to 1e-9."""
     code = ("import json; from station.physics.params import derive_unit; "
-            "print(json.dumps(derive_unit('SN98765').to_dict(), sort_keys=True))")
+            "from station.physics.truth import unit_truth; "
+            "print(json.dumps(unit_truth(derive_unit('SN98765')), sort_keys=True))")
     other = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                            check=True, env={"PYTHONHASHSEED": "12345"}, cwd=".")
     theirs = _leaves(json.loads(other.stdout))
-    mine = _leaves(json.loads(json.dumps(derive_unit("SN98765").to_dict(), sort_keys=True)))
+    mine = _leaves(json.loads(json.dumps(unit_truth(derive_unit("SN98765")), sort_keys=True)))
     assert theirs.keys() == mine.keys()
     for key, value in mine.items():
         if isinstance(value, float) and "chain_modes" in key:
@@ -158,7 +160,7 @@ def test_belt_modes_straddle_the_papers_20_hz(serial: str) -> None:
 
 def test_truth_is_json_and_names_each_enabled_effect_with_its_parameters() -> None:
     unit = derive_unit("SN31337", load=LoadKind.BELT, effects=list(Effect))
-    truth = json.loads(json.dumps(unit.to_dict()))
+    truth = json.loads(json.dumps(unit_truth(unit)))
     assert truth["serial"] == "SN31337" and truth["load"] == "belt"
     assert truth["gear_ratio"] == pytest.approx(1 / 7)
     assert [e["id"] for e in truth["effects"]] == sorted(e.value for e in Effect)

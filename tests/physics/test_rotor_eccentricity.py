@@ -14,6 +14,7 @@ from station.dsp.demod import harmonic_phasors
 from station.physics.motor import Eccentricity, magnetic_stiffness, torque, torque_components
 from station.physics.params import AmplifierParams, DiskParams, UnitParams, derive_unit
 from station.physics.plant import STAIRCASE_LAG_MICROSTEPS, DriveCommand, Plant
+from station.physics.truth import unit_truth
 from station.sim.population import draw_line_unit
 
 M = 256
@@ -193,7 +194,7 @@ def test_the_unbalance_is_a_load_not_motor_torque() -> None:
 
 def test_the_truth_gives_the_eccentricity_and_its_unbalance() -> None:
     unit = derive_unit("SN3003", load=LoadKind.BELT, effects=[Effect.ROTOR_ECCENTRICITY])
-    truth = json.loads(json.dumps(unit.to_dict()))
+    truth = json.loads(json.dumps(unit_truth(unit)))
     (entry,) = truth["effects"]
     assert entry["id"] == "rotor_eccentricity"
     assert entry["parameters"]["relative"] == unit.motor.eccentricity.relative  # type: ignore[union-attr]

@@ -20,6 +20,7 @@ from station.physics.params import (
     derive_unit,
 )
 from station.physics.plant import DriveCommand, Plant
+from station.physics.truth import unit_truth
 
 M = 256
 T = 0.001
@@ -117,14 +118,14 @@ def test_a_square_linear_sensor_is_what_it_was() -> None:
 def test_unnamed_effects_are_listed_apart_from_the_vocabulary() -> None:
     unit = _with_sensor(derive_unit("SN4", effects=[Effect.FRICTION]), tilt_rad=-0.2,
                         nonlinearity_c2=0.01)
-    truth = json.loads(json.dumps(unit.to_dict()))
+    truth = json.loads(json.dumps(unit_truth(unit)))
     assert [e["id"] for e in truth["effects"]] == ["friction"]
     listed = {e["id"]: e["parameters"] for e in truth["out_of_vocabulary"]}
     assert set(listed) == {"sensor_nonlinearity", "sensor_tilt"}
     assert listed["sensor_tilt"]["tilt_rad"] == -0.2
     assert listed["sensor_nonlinearity"]["c2"] == 0.01
     assert not {u.value for u in UnnamedEffect} & {e.value for e in Effect}
-    assert derive_unit("SN4").to_dict()["out_of_vocabulary"] == []
+    assert unit_truth(derive_unit("SN4"))["out_of_vocabulary"] == []
 
 
 def test_implausible_sensor_imperfections_are_refused() -> None:

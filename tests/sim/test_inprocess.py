@@ -21,13 +21,8 @@ from station.analysis.timeline import Timeline
 from station.core import NOMINAL_TRIMS, Effect, LoadKind, Trims
 from station.errors import InputError
 from station.physics.params import UnitParams, derive_unit
-from station.recording import (
-    FRAMES_RECORDED_KEY,
-    LogFormat,
-    SimulatedClock,
-    log_format_for,
-    read_metadata,
-)
+from station.recorder import SimulatedClock
+from station.recording import FRAMES_RECORDED_KEY, LogFormat, log_format_for, read_metadata
 from station.schedules import Hold, Phase, Schedule, ScheduleName, velocity_for
 from station.serials import parse_serial
 from station.sim.inprocess import (

@@ -16,6 +16,7 @@ from station.limits import trims_within
 from station.physics.optimum import optimal_trims
 from station.physics.params import UnitParams, UnnamedEffect
 from station.physics.plant import DriveCommand, Plant
+from station.physics.truth import unit_truth
 from station.recipes import load_recipe
 from station.serials import parse_serial
 from station.sim.population import (
@@ -41,8 +42,8 @@ def test_the_same_seed_gives_the_same_unit_and_another_seed_another() -> None:
     for load in LoadKind:
         a = draw_unit(7, load=load, effects=EVERY, unnamed=frozenset(UnnamedEffect))
         assert a == draw_unit(7, load=load, effects=EVERY, unnamed=frozenset(UnnamedEffect))
-        assert a.to_dict() == draw_unit(7, load=load, effects=EVERY,
-                                        unnamed=frozenset(UnnamedEffect)).to_dict()
+        assert unit_truth(a) == unit_truth(draw_unit(7, load=load, effects=EVERY,
+                                                     unnamed=frozenset(UnnamedEffect)))
         b = draw_unit(8, load=load, effects=EVERY)
         assert a.motor.kt_Nm_per_A != b.motor.kt_Nm_per_A
         assert a.amplifier.offset_a_mA != b.amplifier.offset_a_mA
@@ -174,7 +175,7 @@ def test_unnamed_effects_span_their_ranges_and_stay_out_of_the_effects() -> None
         assert _within(abs(math.degrees(s.tilt_rad)), 5.0, 20.0)
         assert unit.effects == NONE
         assert unit.unnamed_effects == frozenset(UnnamedEffect)
-        truth = json.loads(json.dumps(unit.to_dict()))
+        truth = json.loads(json.dumps(unit_truth(unit)))
         assert truth["effects"] == []
         assert {e["id"] for e in truth["out_of_vocabulary"]} == {u.value for u in UnnamedEffect}
 
@@ -275,7 +276,7 @@ def test_the_plant_runs_every_drawn_unit_stably(load: LoadKind) -> None:
 
 def test_the_truth_is_json_with_every_constant_and_effect() -> None:
     unit = draw_unit(3, load=LoadKind.BELT, effects=EVERY, unnamed=frozenset(UnnamedEffect))
-    truth = json.loads(json.dumps(unit.to_dict()))
+    truth = json.loads(json.dumps(unit_truth(unit)))
     assert truth["serial"] == unit.serial and truth["load"] == "belt"
     assert truth["gear_ratio"] == unit.gear_ratio
     assert [e["id"] for e in truth["effects"]] == sorted(e.value for e in Effect)

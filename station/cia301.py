@@ -1,8 +1,11 @@
-"""CiA 301 vocabulary, shared by both ends of the bus.
+"""CiA 301 vocabulary, shared by both ends of the bus and by what reads its recordings.
 
 The station's drivers and the simulated devices speak one protocol; naming its
-constants once keeps the two ends from drifting apart. (The byte layouts of
-ICD.md are checked independently, by hand-written formats in the tests.)
+constants once keeps the two ends from drifting apart. It is part of the shared core
+(with ``station.core`` and ``station.errors``), the only station modules the drivers
+import, so that the analysis can read a recording's frames without importing a driver.
+(The byte layouts of ICD.md are checked independently, by hand-written formats in the
+tests.)
 """
 
 from __future__ import annotations
@@ -14,6 +17,9 @@ SYNC_COB_ID = 0x080
 TPDO1_COB_BASE = 0x180
 TPDO2_COB_BASE = 0x280
 HEARTBEAT_COB_BASE = 0x700
+SYNC_COUNTER_OVERFLOW = 240
+"""The SYNC counter runs 1..240 (CiA 301 0x1019) and wraps: the station's SYNC producer
+counts so, and recordings are read so."""
 
 
 class NmtCommand(IntEnum):
