@@ -38,11 +38,12 @@ from station.qa import Capability, capability
 from station.recipes import (
     DEFAULT_RECIPE,
     Recipe,
+    RecipeError,
     available_recipes,
     load_recipe,
     parse_recipe,
 )
-from station.runs import RecipeRef, Run, RunKind, Verdict
+from station.runs import LimitName, RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
 from station.store import RunFilter, Store, VerificationRecord
 
@@ -155,7 +156,15 @@ def _recipe_of(store: Store, previous: Run) -> Recipe:
     if text is None:
         raise InputError(f"recipe {name!r} of run {previous.run_id} is neither shipped nor "
                          "kept in the database; name one with --recipe")
-    return parse_recipe(text, source=f"{name} {previous.recipe.version} (database copy)")
+    try:
+        return parse_recipe(text, source=f"{name} {previous.recipe.version} (database copy)")
+    except RecipeError as exc:
+        # Records outlive software: a text this version no longer reads is not run as a
+        # guess. The history and statistics still read the run from its record alone.
+        raise InputError(f"recipe {name!r} {previous.recipe.version} of run "
+                         f"{previous.run_id} was written for another version of the station "
+                         f"and does not read here ({'; '.join(exc.problems)}); "
+                         "name one with --recipe") from None
 
 
 def _new_run(station: Station, serial: Serial, recipe: Recipe, kind: RunKind) -> Run:
@@ -308,48 +317,60 @@ class RecipeStatistics:
 def statistics(db_path: Path, run_filter: RunFilter) -> list[RecipeStatistics]:
     """Mean, standard deviation and Cpk of trims and residual ripple, per recipe version.
 
-    Capability is judged against the limits of the exact recipe text the runs
-    used (kept in the database by hash), not today's file. Only runs that
-    measured a unit (pass or fail) count; errors and aborts measured nothing.
+    Capability is judged against the limits the runs themselves were judged by: each
+    record keeps its limit checks with their bounds. No recipe text is parsed again, so
+    runs recorded under an older recipe format (or a key since renamed) still count.
+    Only runs that measured a unit (pass or fail) count; errors and aborts measured
+    nothing.
     """
     with Store(db_path) as store:
         runs = store.query(run_filter)
-        groups: dict[str, list[Run]] = {}
-        for run in runs:
-            groups.setdefault(run.recipe.sha256, []).append(run)
-        texts = {sha: store.recipe_text(sha) for sha in groups}
+    groups: dict[str, list[Run]] = {}
+    for run in runs:
+        groups.setdefault(run.recipe.sha256, []).append(run)
     out: list[RecipeStatistics] = []
-    for sha, members in groups.items():
+    for members in groups.values():
         ref = members[0].recipe
         verdicts = {v: sum(1 for r in members if r.verdict is v) for v in Verdict}
-        text = texts[sha]
         measured = [r for r in members if r.verdict in (Verdict.PASS, Verdict.FAIL)]
-        quantities = _capabilities(measured, parse_recipe(text) if text is not None else None)
-        out.append(RecipeStatistics(ref, len(members), verdicts, quantities))
+        out.append(RecipeStatistics(ref, len(members), verdicts, _capabilities(measured)))
     out.sort(key=lambda s: (s.recipe.name, s.recipe.version))
     return out
 
 
-def _capabilities(runs: Sequence[Run], recipe: Recipe | None) -> dict[str, Capability]:
-    limits = recipe.limits if recipe is not None else None
-    bound = limits.offset_bound_mA if limits is not None else None
-    gain_low = limits.gain_min if limits is not None else None
-    gain_high = limits.gain_max if limits is not None else None
+_CAPABILITY_LIMITS: dict[str, LimitName] = {
+    "offset_a_mA": LimitName.OFFSET_A,
+    "offset_b_mA": LimitName.OFFSET_B,
+    "gain_a": LimitName.GAIN_A,
+    "gain_b": LimitName.GAIN_B,
+    "h1_after_mps2": LimitName.H1_AFTER,
+    "h2_after_mps2": LimitName.H2_AFTER,
+}
+"""Each quantity QA follows, and the limit check whose bounds it is judged against."""
+
+
+def recorded_bounds(runs: Sequence[Run], name: LimitName) -> tuple[float | None, float | None]:
+    """The bounds the runs' own checks of ``name`` carried: the newest run's where the
+    software that judged them changed between runs of one recipe text; none where no run
+    recorded the check (its capability is then mean and spread only)."""
+    for run in sorted(runs, key=lambda r: r.started_at, reverse=True):
+        for check in run.limits:
+            if check.name == name and (check.low is not None or check.high is not None):
+                return check.low, check.high
+    return None, None
+
+
+def _capabilities(runs: Sequence[Run]) -> dict[str, Capability]:
     trims = [r.trims_after for r in runs if r.trims_after is not None and r.trims_stored]
     after = [r.after for r in runs if r.after is not None]
-    return {
-        "offset_a_mA": capability([t.offset_a_mA for t in trims], _neg(bound), bound),
-        "offset_b_mA": capability([t.offset_b_mA for t in trims], _neg(bound), bound),
-        "gain_a": capability([t.gain_a for t in trims], gain_low, gain_high),
-        "gain_b": capability([t.gain_b for t in trims], gain_low, gain_high),
-        "h1_after_mps2": capability(
-            [a.h1 for a in after], None, limits.max_h1_after_mps2 if limits else None
-        ),
-        "h2_after_mps2": capability(
-            [a.h2 for a in after], None, limits.max_h2_after_mps2 if limits else None
-        ),
+    values: dict[str, list[float]] = {
+        "offset_a_mA": [t.offset_a_mA for t in trims],
+        "offset_b_mA": [t.offset_b_mA for t in trims],
+        "gain_a": [t.gain_a for t in trims],
+        "gain_b": [t.gain_b for t in trims],
+        "h1_after_mps2": [a.h1 for a in after],
+        "h2_after_mps2": [a.h2 for a in after],
     }
+    return {key: capability(values[key], *recorded_bounds(runs, name))
+            for key, name in _CAPABILITY_LIMITS.items()}
 
-
-def _neg(value: float | None) -> float | None:
-    return None if value is None else -value

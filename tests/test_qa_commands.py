@@ -6,6 +6,7 @@ means, deviations and Cpk can be computed by hand.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import statistics
@@ -19,50 +20,64 @@ import pytest
 
 from station.cli import main
 from station.core import Trims
-from station.recipes import load_recipe
-from station.runs import LimitCheck, LimitName, RecipeRef, Ripple, Run, RunKind, Verdict
+from station.limits import bound_checks, ripple_checks, summary, verdict_for
+from station.recipes import Recipe, RecipeError, load_recipe, parse_recipe
+from station.runs import LimitCheck, RecipeRef, Ripple, Run, RunKind, Verdict
 from station.service import statistics as recipe_statistics
 from station.store import RunFilter, Store
 
 OFFSETS_A = (60.0, 64.0, 68.0, 72.0)
 H1_AFTER = (0.004, 0.006, 0.005, 0.007)
+H1_LIMIT = 0.0065
+"""The line's recipe: the default with a tighter H1 limit, which SN503 fails."""
 
 
-def _run(serial: str, verdict: Verdict, offset_a: float, h1: float, started: datetime) -> Run:
-    recipe = load_recipe("default")
+def _line_recipe() -> Recipe:
+    text = load_recipe("default").text.replace("max_h1_after_mps2 = 0.08",
+                                               f"max_h1_after_mps2 = {H1_LIMIT}")
+    return parse_recipe(text, source="line")
+
+
+def _run(serial: str, recipe: Recipe, offset_a: float, h1: float, started: datetime,
+         ref: RecipeRef | None = None) -> Run:
+    """A run as the procedure records it: every limit check with its bounds."""
     run = Run(
         serial=serial, kind=RunKind.CALIBRATE,
-        recipe=RecipeRef(recipe.name, recipe.version, recipe.sha256), station_id=3,
+        recipe=ref or RecipeRef(recipe.name, recipe.version, recipe.sha256), station_id=3,
         operator="qa", software_version="test", bench="sim", started_at=started,
     )
-    run.verdict = verdict
-    run.reason = "all limits met" if verdict is Verdict.PASS else "failed h1_after_mps2"
     run.finished_at = started + timedelta(seconds=20)
     run.trims_before = Trims()
     run.trims_after = Trims(offset_a, -20.0, 9950.0, 10050.0)
     run.trims_stored = True
     run.before = Ripple(1.2, 0.5)
     run.after = Ripple(h1, 0.01)
-    if verdict is Verdict.FAIL:
-        run.limits = (LimitCheck(LimitName.H1_AFTER, h1, None, 0.005, "m/s²", False),)
+    run.limits = (*bound_checks(recipe.limits, run.trims_after),
+                  *ripple_checks(recipe.limits, run.before, run.after))
+    run.verdict = verdict_for(run.limits)
+    run.reason = summary(run.limits)
     return run
+
+
+def _store_line(path: Path, recipe: Recipe, text: str, ref: RecipeRef | None = None) -> None:
+    start = datetime(2026, 3, 1, 8, 0, tzinfo=UTC)
+    with Store(path) as store:
+        for i, (offset, h1) in enumerate(zip(OFFSETS_A, H1_AFTER, strict=True)):
+            run = _run(f"SN{500 + i}", recipe, offset, h1, start + timedelta(hours=i), ref)
+            store.begin_run(run, text)
+            store.finish_run(run)
+        errored = _run("SN599", recipe, 0.0, 0.0, start + timedelta(days=1), ref)
+        errored.trims_after, errored.after, errored.trims_stored = None, None, False
+        errored.limits, errored.verdict, errored.reason = (), Verdict.ERROR, "sensor: silent"
+        store.begin_run(errored, text)
+        store.finish_run(errored)
 
 
 @pytest.fixture
 def db(tmp_path: Path) -> Path:
     path = tmp_path / "qa.db"
-    text = load_recipe("default").text
-    start = datetime(2026, 3, 1, 8, 0, tzinfo=UTC)
-    with Store(path) as store:
-        for i, (offset, h1) in enumerate(zip(OFFSETS_A, H1_AFTER, strict=True)):
-            verdict = Verdict.PASS if h1 <= 0.0065 else Verdict.FAIL
-            run = _run(f"SN{500 + i}", verdict, offset, h1, start + timedelta(hours=i))
-            store.begin_run(run, text)
-            store.finish_run(run)
-        errored = _run("SN599", Verdict.ERROR, 0.0, 0.0, start + timedelta(days=1))
-        errored.trims_after, errored.after, errored.trims_stored = None, None, False
-        store.begin_run(errored, text)
-        store.finish_run(errored)
+    recipe = _line_recipe()
+    _store_line(path, recipe, recipe.text)
     return path
 
 
@@ -76,7 +91,7 @@ def _cli(args: list[str], monkeypatch: pytest.MonkeyPatch,
 
 def test_statistics_give_mean_std_and_cpk_against_the_recipes_limits(db: Path) -> None:
     (stats,) = recipe_statistics(db, RunFilter())
-    limits = load_recipe("default").limits
+    limits = _line_recipe().limits
     assert stats.runs == 5
     assert stats.verdicts[Verdict.PASS] == 3 and stats.verdicts[Verdict.FAIL] == 1
     assert stats.verdicts[Verdict.ERROR] == 1
@@ -106,7 +121,7 @@ def test_stats_command_prints_json_per_recipe_version(
     code, out = _cli(["stats", "--db", str(db), "--json"], monkeypatch, capsys)
     assert code == 0
     (doc,) = json.loads(out)
-    assert doc["recipe"] == "default" and doc["recipe_sha256"] == load_recipe("default").sha256
+    assert doc["recipe"] == "default" and doc["recipe_sha256"] == _line_recipe().sha256
     assert doc["verdicts"] == {"pass": 3, "fail": 1, "error": 1, "aborted": 0}
     offset: dict[str, Any] = doc["quantities"]["offset_a_mA"]
     assert offset["n"] == 4 and math.isclose(offset["mean"], statistics.mean(OFFSETS_A))
@@ -169,7 +184,43 @@ def test_a_stored_run_with_an_unknown_limit_name_still_reads_back(db: Path) -> N
         future = replace(run, run_id=None, limits=(
             LimitCheck("thermal_drift_mA", 1.0, None, 2.0, "mA", True),
         ))
-        store.begin_run(future, load_recipe("default").text)
+        store.begin_run(future, _line_recipe().text)
         store.finish_run(future)
         again = store.history("SN503")[-1]
     assert again.limits[0].name == "thermal_drift_mA"
+
+
+def test_runs_of_a_recipe_this_version_no_longer_reads_keep_every_qa_command_working(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Records outlive software: runs stored under an older recipe format, one of whose
+    keys has since been renamed. Statistics come from the records' own limit checks."""
+    old = (_line_recipe().text.replace('format = "station-recipe/1"', 'format = "station-recipe/0"')
+           .replace('name = "default"', 'name = "line-2025"')
+           .replace("max_h1_after_mps2 =", "max_h1_after ="))
+    with pytest.raises(RecipeError):
+        parse_recipe(old)
+    ref = RecipeRef("line-2025", "3", hashlib.sha256(old.encode("utf-8")).hexdigest())
+    db = tmp_path / "old.db"
+    _store_line(db, _line_recipe(), old, ref)
+
+    (stats,) = recipe_statistics(db, RunFilter())
+    assert stats.recipe == ref and stats.runs == 5
+    h1 = stats.quantities["h1_after_mps2"]
+    assert h1.high == H1_LIMIT and h1.cpk is not None
+    assert stats.quantities["offset_a_mA"].high == _line_recipe().limits.offset_bound_mA
+    for args in (["stats"], ["stats", "--json"], ["history", "SN503"], ["query", "--json"]):
+        code, out = _cli([*args, "--db", str(db)], monkeypatch, capsys)
+        assert code == 0 and out, args
+    # Recalibrating with that recipe is refused in words, with what to do instead; naming
+    # a recipe of today calibrates the unit, its previous record found.
+    code, out = _cli(["recalibrate", "SN503", "--reason", "field return", "--db", str(db)],
+                     monkeypatch, capsys)
+    assert code == 2 and out == ""
+    with Store(db) as store:
+        assert len(store.history("SN503")) == 1
+    code, out = _cli(["recalibrate", "SN503", "--reason", "field return", "--recipe",
+                      "default", "--db", str(db), "--json"], monkeypatch, capsys)
+    doc = json.loads(out)
+    assert code == 0, doc["reason"]
+    assert doc["previous_trims"]["offset_a_mA"] == OFFSETS_A[3]
