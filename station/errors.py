@@ -10,6 +10,7 @@ can look it up in the device manual.
 from __future__ import annotations
 
 from enum import IntEnum
+from typing import Any
 
 
 class ExitCode(IntEnum):
@@ -25,6 +26,20 @@ class StationError(Exception):
     """Root of every error the station raises on purpose."""
 
     exit_code: ExitCode = ExitCode.STATION
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Errors cross process boundaries (worker pools of the diagnosis and the
+        # benchmarks), and pickle would call a subclass's own constructor with the
+        # message alone: rebuilt instead from the message, with every attribute kept.
+        return _rebuilt, (type(self), self.args, self.__dict__)
+
+
+def _rebuilt(cls: type[StationError], args: tuple[Any, ...],
+             state: dict[str, Any]) -> StationError:
+    error = cls.__new__(cls)
+    Exception.__init__(error, *args)
+    error.__dict__.update(state)
+    return error
 
 
 class InputError(StationError):
