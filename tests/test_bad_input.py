@@ -25,13 +25,13 @@ from typing import Any
 
 import pytest
 
-from station import benches
 from station.cli import main
 from station.core import NOMINAL_TRIMS, LoadKind
 from station.recipes import load_recipe
 from station.recording import metadata_path_for
 from station.schedules import Hold, Phase, Schedule, ScheduleName, velocity_for
 from station.serials import parse_serial
+from station.sim import bench as simulator
 from station.sim.bench import SimBench
 from station.sim.record import SimRecordRequest, record_schedule
 from station.store import Store
@@ -72,7 +72,7 @@ def benches_built(monkeypatch: pytest.MonkeyPatch) -> list[str]:
             built.append("SimBench")
             raise BenchConstructed("a simulated bench was constructed for bad input")
 
-    monkeypatch.setattr(benches, "SimBench", NoBench)
+    monkeypatch.setattr(simulator, "SimBench", NoBench)
     return built
 
 
@@ -361,17 +361,17 @@ def test_characterize_refuses_a_database_folder_that_is_a_file(
 _CLI_WITHOUT_BENCH = textwrap.dedent("""
     # The real CLI, several times in one process, with the simulated bench forbidden.
     import contextlib, io, json, sys
-    import station.benches as benches
+    import station.sim.bench as simulator
     from station.cli import main
 
     built = []
 
-    class NoBench(benches.SimBench):
+    class NoBench(simulator.SimBench):
         def __init__(self, *args, **kwargs):
             built.append(1)
             raise AssertionError("a simulated bench was constructed for bad input")
 
-    benches.SimBench = NoBench
+    simulator.SimBench = NoBench  # the module station.benches loads by name
     results = []
     for argv in json.loads(sys.argv[1]):
         sys.argv = ["station", *argv]

@@ -25,6 +25,7 @@ from station.recording import read_metadata
 from station.runs import Verdict
 from station.serials import parse_serial
 from station.service import Station, calibrate
+from station.sim import bench as simulator
 from station.sim.bench import SimBench
 from station.sim.record import describe_unit
 from station.store import Store
@@ -130,7 +131,7 @@ def test_a_drive_that_falls_silent_mid_run_is_an_error_and_ends_disabled(
             states.append(self.drive.state)
             super().close()
 
-    monkeypatch.setattr(benches, "SimBench", Watched)
+    monkeypatch.setattr(simulator, "SimBench", Watched)
     station = Station(tmp_path / "station.db", benches.load_bench("sim-modbus"), "tester")
     result: Any = calibrate(station, "SN123", observer=observer)
     run = result.run

@@ -22,6 +22,7 @@ from station.core import NOMINAL_TRIMS
 from station.procedure import Step
 from station.runs import Run, Verdict
 from station.service import Station, calibrate
+from station.sim import bench as simulator
 from station.sim.bench import SimBench, TrimsLeft
 from station.simsettings import Fault, FaultKind, SimSettings
 from station.store import Store
@@ -84,7 +85,7 @@ def benches_closed(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[SimBench]]:
             if self not in closed:
                 closed.append(self)
 
-    monkeypatch.setattr(benches, "SimBench", Watched)
+    monkeypatch.setattr(simulator, "SimBench", Watched)
     yield closed
 
 
