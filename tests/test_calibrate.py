@@ -33,6 +33,7 @@ from station.recording import read_metadata
 from station.runs import LimitName, Run, Verdict
 from station.serials import parse_serial
 from station.service import Station, calibrate
+from station.sim import bench as simulator
 from station.sim.bench import SimBench
 from station.sim.population import LineKind, draw_line_unit
 from station.sim.record import describe_unit
@@ -452,7 +453,7 @@ def drive_states_at_close(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[Driv
             states.append(decode_statusword(self.drive.statusword()))
             super().close()
 
-    monkeypatch.setattr(benches, "SimBench", WatchedBench)
+    monkeypatch.setattr(simulator, "SimBench", WatchedBench)
     yield states
 
 
