@@ -407,13 +407,13 @@ def test_verdict_fails_on_any_failed_check_and_ignores_those_that_did_not_apply(
 def test_summary_names_every_failed_limit_with_its_value_and_bound() -> None:
     checks = (
         *ripple_checks(LIMITS, Ripple(1.0, 1.0), Ripple(0.5, 0.1)),
-        unsupported("gain split: the points hold a single gain split (need 2)"),
+        unsupported("gain split: the points hold a single gain split (need two 10 apart)"),
     )
     text = summary(checks)
     assert text.startswith("failed ")
     assert "h1_after_mps2 = 0.5 m/s² (limit 0.08)" in text
     assert "reduction" not in text  # 6.02 and 20 dB: both passed
-    assert "estimate: gain split: the points hold a single gain split (need 2)" in text
+    assert "estimate: gain split: the points hold a single gain split (need two 10 apart)" in text
     assert "h2_after_mps2" not in text
 
 

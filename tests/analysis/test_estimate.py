@@ -18,6 +18,7 @@ import pytest
 from numpy.typing import NDArray
 
 from station.analysis.estimate import (
+    SPLIT_SPREAD,
     Method,
     TrimAxis,
     TrimPoint,
@@ -261,6 +262,16 @@ def test_a_single_gain_split_is_refused() -> None:
         coherent_estimate(points(design, seed=0))
     with pytest.raises(Unsupported, match="gain_split: too few points"):
         paper_estimate(points(design, seed=0))
+
+
+def test_splits_closer_than_the_accuracy_asked_are_one_split() -> None:
+    # Two rounds re-centred 2 units apart (seed 717580667) do not make a gain sweep.
+    design = [u for u in cross_design() if u[2] == 0.0]
+    design += [np.array([u[0], u[1], 2.0]) for u in design[:3]]
+    with pytest.raises(Unsupported, match="single gain split"):
+        coherent_estimate(points(design, seed=0))
+    spread = [*design[:-3], *(np.array([u[0], u[1], SPLIT_SPREAD]) for u in design[:3])]
+    assert coherent_estimate(points(spread, seed=0)).method is Method.COHERENT
 
 
 def test_too_few_points_are_refused_by_both_methods() -> None:
