@@ -325,8 +325,11 @@ def _noise_records(leg: str, measured: list[Outcome]) -> list[BenchRecord]:
     resolved = [o.offset_error_mA for o in sigma if o.offset_sigma_mA <= RESOLVED_SIGMA_mA]
     pulls = [o.offset_error_mA / o.offset_sigma_mA for o in sigma]
     # Motion scales the holds' time, and σ² falls as 1/time: an upper figure, since
-    # spin-ups and the verification would not lengthen.
-    needed = [o.motion_s * max(1.0, (o.offset_sigma_mA / RESOLVED_SIGMA_mA) ** 2) for o in sigma]
+    # spin-ups and the verification would not lengthen. Over the units that passed: one
+    # that failed its σ limit is not calibrated at all (a ruined estimate's σ of 49,000
+    # mA asked for 10⁹ s).
+    needed = [o.motion_s * max(1.0, (o.offset_sigma_mA / RESOLVED_SIGMA_mA) ** 2)
+              for o in sigma if o.verdict == Verdict.PASS]
     return [
         BenchRecord(f"calibration_noise_limited_units_{leg}",
                     float(len(sigma) - len(resolved)), "units", math.inf, Goal.AT_MOST),
