@@ -23,7 +23,7 @@ the recipe then stored it. It is also set against each run's own σ: the RMS of 
 over σ (the pull) says whether the σ the limits judge is honest, and a unit whose σ
 exceeds a third of the worst error asked is noise-limited (``RESOLVED_SIGMA_mA``), the
 accuracy given again over the others, with the motion that would bring every unit
-within it. Motion time is the simulated time the SYNC clock ran, what a
+that passed within it. Motion time is the simulated time the SYNC clock ran, what a
 calibration costs on a line; wall time is what the station spent per unit here, two
 units at a time, one per core. A run whose recording holds samples at the sensor's full
 scale must say so in its warnings or reason; how many units clipped, and how many did so
@@ -103,7 +103,7 @@ RESOLVED_SIGMA_mA = WORST_OFFSET_mA / 3.0
 estimate from the holds it had: its error is the sensor's noise over its sensitivity
 (belts, whose load moves little per milliampere of offset), not the station's bias. The
 accuracy figures are also given over the units within it, and what holds long enough
-for every unit to reach it would cost."""
+for every unit that passed to reach it would cost."""
 PULL_RMS_TARGET = 1.5
 """Errors over the run's own σ (the larger of each): near 1 when the σ that the limits
 judge is honest, well above it when the estimate is biased beyond what it claims."""

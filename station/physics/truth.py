@@ -12,6 +12,7 @@ from typing import Any
 
 from station.core import Effect
 from station.physics.params import UnitParams, UnnamedEffect, as_jsonable
+from station.physics.plant import modal_analysis
 
 
 def unit_truth(unit: UnitParams) -> dict[str, Any]:
@@ -47,6 +48,7 @@ def unit_truth(unit: UnitParams) -> dict[str, Any]:
     }
     return out
 
+
 def _unnamed_parameters(unit: UnitParams, unnamed: UnnamedEffect) -> dict[str, Any]:
     s = unit.sensor
     match unnamed:
@@ -58,6 +60,7 @@ def _unnamed_parameters(unit: UnitParams, unnamed: UnnamedEffect) -> dict[str, A
         case UnnamedEffect.SENSOR_TILT:
             return {"tilt_rad": s.tilt_rad, "tilt_deg": math.degrees(s.tilt_rad),
                     "law": "t' = cos(a)*t + sin(a)*r, r' = cos(a)*r - sin(a)*t"}
+
 
 def _effect_parameters(unit: UnitParams, effect: Effect) -> dict[str, Any]:
     m, a, mech, s = unit.motor, unit.amplifier, unit.mechanics, unit.sensor
@@ -76,9 +79,6 @@ def _effect_parameters(unit: UnitParams, effect: Effect) -> dict[str, Any]:
             return {"L1_H": m.L1_H, "peak_torque_at_rated_Nm": m.rotor_teeth * m.L1_H
                     * (unit.rated_current_mA / 1000.0) ** 2}
         case Effect.LOAD_RESONANCE:
-            # Imported here: the plant builds on these parameters, not the reverse.
-            from station.physics.plant import modal_analysis  # noqa: PLC0415
-
             modes = modal_analysis(unit, float(unit.rated_current_mA))
             return {**as_jsonable(mech.coupling),
                     "chain_modes_at_rated_current": [
