@@ -40,6 +40,7 @@ from station.analysis.estimate import (
     TrimSigma,
     Unsupported,
     coherent_estimate,
+    correction_from,
     fit_parabola,
 )
 from station.analysis.phasor_clock import clock_from_phasors
@@ -83,7 +84,7 @@ from station.recipes import Clipping, CoherentSweep, MagnitudeSweep, PaperSweep,
 from station.recorder import RecordingWriter
 from station.recording import RecordingMetadata
 from station.runner import Motion
-from station.runs import LimitCheck, Ripple, Run, Verdict
+from station.runs import LimitCheck, LimitName, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for
 from station.selfcheck import sensor_in_motion_problems, sensor_self_check
 from station.serials import Serial, label_for
@@ -225,6 +226,8 @@ class _Calibration:
         self.clock_rate = 0.0
         self.wraps: list[int] = []  # where, in the run's samples
         self.clock_phasors: float | None = None  # the rate the phasors fitted best
+        self.clock_used: ClockPhase | None = None  # the clock the last estimate's phasors used
+        self.verified: Measured | None = None  # the hold the verdict was judged on
 
     # -- the whole run ------------------------------------------------------------------------
 
@@ -366,6 +369,11 @@ class _Calibration:
         self._write_and_store(stored)
         after = self._verify(stored)
         checks = (*checks, *ripple_checks(self.recipe.limits, run.before, after))
+        for _ in range(self.recipe.verification.max_corrections):
+            corrected = self._correct(estimate, stored, checks)
+            if corrected is None:
+                break
+            stored, checks = corrected
         self._judge(checks)
         if run.verdict is Verdict.PASS:
             self._write_calibration_record()
@@ -506,7 +514,7 @@ class _Calibration:
         measured, rejected = measure(timeline, AnalysisOptions(
             settle_periods=float(settle), clock_seen=tuple(self.clock_seen),
             first_sample=first, wraps_seen=tuple(self.wraps), halves=halves,
-            find_ringing=phase is not Phase.VERIFY))
+            find_ringing=phase is not Phase.VERIFY, taper=phase is Phase.VERIFY))
         self._follow_clock(measured)
         best: dict[Trims, Measured] = {}
         for m in measured:
@@ -685,6 +693,7 @@ class _Calibration:
             # Every hold so far on the clock as the run knows it now: the first round's
             # holds were demodulated before the later ones had timed it.
             clock = self._clock_phase(held)
+            self.clock_used = clock
             points = [m.point(clock) for m in held]
             self.observer.step(Step.ESTIMATE, f"round {number}: {len(points)} points")
             estimate = coherent_estimate(points)
@@ -788,10 +797,48 @@ class _Calibration:
                 f"{dwelt * period_s:.2f} s of verification (the recipe's longest); the "
                 "ripple after is what the last hold measured"
             )
+        self.verified = measured[0]
         h = measured[0].harmonics
         after = Ripple(abs(h.h(1)), abs(h.h(2)))
         self.run_record.after = after
         return after
+
+    def _correct(self, estimate: TrimEstimate, stored: Trims, checks: Sequence[LimitCheck]
+                 ) -> tuple[Trims, tuple[LimitCheck, ...]] | None:
+        """Trims corrected from a verification that failed only on its ripple, stored and
+        verified again; None where no correction can help.
+
+        The verification is one more hold, at the trims the unit ships with and near
+        the null, so its phasors say where the null is more closely than the sweep's
+        far points did (``correction_from``). A unit whose maps predict a ripple over a
+        limit even at the corrected trims (an irreducible H2, say) is not moved: it
+        fails as measured, and its failing costs no further motion.
+        """
+        failed = {c.name for c in checks if c.passed is False}
+        if not failed or not failed <= _RIPPLE or self.verified is None:
+            return None
+        correction = correction_from(estimate, self.verified.point(self.clock_used))
+        limits = self.recipe.limits
+        if (correction is None or correction.trims == stored
+                or correction.h1_mps2 > limits.max_h1_after_mps2
+                or correction.h2_mps2 > limits.max_h2_after_mps2):
+            return None
+        checks = estimate_checks(limits, estimate, correction.trims)
+        if verdict_for(checks) is Verdict.FAIL:
+            return None  # out of the recipe's bounds: the unit keeps what was verified
+        run = self.run_record
+        was = run.after
+        assert was is not None
+        run.warnings.append(
+            f"{Phase.VERIFY.value}: {' and '.join(sorted(failed))} over the limit at "
+            f"{_trims_text(stored)} (H1 {was.h1:.3g}, H2 {was.h2:.3g} m/s²); the sweep's maps "
+            f"anchored on that hold put the offsets' null at {correction.null.offset_a_mA:+.1f}/"
+            f"{correction.null.offset_b_mA:+.1f} mA: stored "
+            f"{_trims_text(correction.trims)} (predicted H1 {correction.h1_mps2:.3g}, "
+            f"H2 {correction.h2_mps2:.3g} m/s²) and verified again")
+        self._write_and_store(correction.trims)
+        after = self._verify(correction.trims)
+        return correction.trims, (*checks, *ripple_checks(limits, run.before, after))
 
     def _settling(self, measured: Sequence[Measured]) -> tuple[int, ...]:
         limits = self.recipe.limits
@@ -812,6 +859,10 @@ class _Calibration:
             )
         )
         self._store(drive)
+
+
+_RIPPLE = frozenset({LimitName.H1_AFTER, LimitName.H2_AFTER, LimitName.H1_REDUCTION,
+                     LimitName.H2_REDUCTION})
 
 
 def _from_vertices(fits: Sequence[ParabolaFit]) -> TrimEstimate:

@@ -167,6 +167,10 @@ class Verification:
     # still differ where it could decide the verdict (None, as in recipes written before
     # the key: the one hold); each further hold is ``dwell_periods`` long.
     max_dwell_periods: int | None = None
+    # How often a unit whose verification fails a ripple limit may have its trims
+    # corrected from that verification's own phasors and be verified again (0, as in
+    # recipes written before the key: never).
+    max_corrections: int = 0
 
 
 @dataclass(frozen=True)
@@ -390,6 +394,8 @@ def _read_verification(t: TomlTable) -> Verification:
                         else None),
         max_dwell_periods=(t.integer("max_dwell_periods", 3, 10000)
                            if t.has("max_dwell_periods") else None),
+        max_corrections=(t.integer("max_corrections", 0, 3)
+                         if t.has("max_corrections") else 0),
     )
     longest = verification.max_dwell_periods
     if (longest is not None and t.valid("dwell_periods", "max_dwell_periods")

@@ -26,7 +26,7 @@ from station import benches
 from station.cli import main
 from station.core import LoadKind, Trims
 from station.limits import trims_within
-from station.physics.optimum import optimal_trims
+from station.physics.optimum import optimal_trims, steady_harmonics
 from station.procedure import Step
 from station.recipes import load_recipe
 from station.recording import read_metadata
@@ -299,6 +299,80 @@ def test_a_belt_whose_rounds_share_one_split_near_the_null_is_judged_on_a_real_s
     assert abs(got.offset_a_mA - truth.offset_a_mA) < 2.0
     assert abs(got.offset_b_mA - truth.offset_b_mA) < 2.0
     assert abs(got.gain_a - truth.gain_a) < 10.0
+
+
+def _steady(seed: int, trims: Trims) -> tuple[float, float]:
+    """The plant's own steady |H1| and |H2| at ``trims`` (the default recipe's 1 A, 20 Hz)."""
+    h = steady_harmonics(draw_line_unit(seed).unit, trims, amplitude_mA=1000.0,
+                         electrical_hz=20.0)
+    return abs(h[0]), abs(h[1])
+
+
+@pytest.mark.parametrize("corrections", [1, 0])
+def test_a_verification_over_its_limit_corrects_the_trims_from_its_own_phasors(
+    db: Path, tmp_path: Path, corrections: int,
+) -> None:
+    # Population seed 1405145028: a belt near resonance, 0.12 m/s² of H1 per mA. The sweep's
+    # estimate was 0.36 / 0.47 mA off, the drive's whole milliamperes 0.55 / 0.88, and the
+    # verification read 0.10 m/s² against a limit of 0.08, as the plant has it there.
+    recipe = _recipe_variant(tmp_path, "corrects", max_corrections=corrections)
+    station, serial = _drawn_station(db, 1405145028)
+    run = calibrate(station, serial, str(recipe)).run
+    estimate, shipped = run.trims_estimated, run.trims_after
+    assert estimate is not None and shipped is not None
+    said = [w for w in run.warnings if "verified again" in w]
+    if not corrections:
+        # The recipe allows none: judged on the one verification, the trims stay stored.
+        assert run.verdict is Verdict.FAIL and not said
+        assert shipped == estimate.rounded()
+        (h1,) = [c for c in run.limits if c.name is LimitName.H1_AFTER]
+        assert h1.passed is False
+        return
+    assert run.verdict is Verdict.PASS, run.reason
+    assert len(said) == 1 and "h1_after_mps2 over the limit" in said[0]
+    assert shipped != estimate.rounded()
+    before, after = _steady(1405145028, estimate.rounded()), _steady(1405145028, shipped)
+    assert before[0] > 0.08 and after[0] < 0.06
+    assert run.after is not None and run.after.h1 < 0.08
+
+
+def test_a_ring_far_from_the_low_orders_is_not_read_as_ripple_by_the_verification(
+    db: Path,
+) -> None:
+    # Population seed 1552235132: a disk's 99 Hz mode, rung by the start after the reset,
+    # leaked 0.08 m/s² into H1 through a flat window where the unit had 0.032; it failed.
+    station, serial = _drawn_station(db, 1552235132)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.PASS, run.reason
+    assert not any("verified again" in w for w in run.warnings)
+    assert run.after is not None and run.trims_after is not None
+    steady = _steady(1552235132, run.trims_after)
+    assert abs(run.after.h1 - steady[0]) < 0.02 and abs(run.after.h2 - steady[1]) < 0.03
+
+
+def test_a_clock_two_holds_timed_closely_is_the_runs_clock(db: Path) -> None:
+    # Population seed 508770410: a rough belt with a 215 ppm sensor clock that two holds
+    # timed to 10 ppm and seven others loosely. Taken for no clock, its unplaced wrap put
+    # 0.17 m/s² of H1 into the verification of a unit with 0.003.
+    line = draw_line_unit(508770410)
+    station, serial = _drawn_station(db, 508770410)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.PASS, run.reason
+    assert run.fit is not None
+    assert run.fit["sensor_clock"]["ppm"] == pytest.approx(line.unit.sensor.clock_drift_ppm,
+                                                           abs=40.0)
+    _assert_on_the_plants_optimum(run, 508770410)
+
+
+def test_a_fallback_neighbourhood_is_the_one_that_determines_the_null_best(db: Path) -> None:
+    # Population seed 879511937: a belt with reluctance torque and an eccentric rotor, whose
+    # no neighbourhood of least-shaken points fits within the noise. The smallest that
+    # determined the maps left it 5.7 mA and 81 gain units off, σ 4 mA: a FAIL.
+    station, serial = _drawn_station(db, 879511937)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.PASS, run.reason
+    assert any("fit worse than the noise" in w for w in run.warnings)
+    _assert_on_the_plants_optimum(run, 879511937)
 
 
 def test_a_recipe_without_a_clipping_policy_uses_clipped_holds_and_says_so(

@@ -116,9 +116,10 @@ def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> Non
     assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (4, 16)
     assert recipe.hold_periods() == 6
     # Short holds for the sweep; the verification settles briefly and goes on measuring
-    # while a unit still rings (``max_dwell_periods``).
+    # while a unit still rings (``max_dwell_periods``); a verification that fails on its
+    # ripple alone corrects the trims once from its own phasors. The paper verifies once.
     assert recipe.verification == Verification(dwell_periods=4, settle_periods=2,
-                                               max_dwell_periods=24)
+                                               max_dwell_periods=24, max_corrections=1)
     assert reference.verification == Verification(dwell_periods=20, settle_periods=None)
     assert reference.motion.settle_periods == 4
     assert recipe.product == reference.product
@@ -302,6 +303,8 @@ RANGE_CASES: list[tuple[str, str, object]] = [
     ("verification", "dwell_periods", 10001),
     ("verification", "max_dwell_periods", 2),
     ("verification", "max_dwell_periods", 10001),
+    ("verification", "max_corrections", -1),
+    ("verification", "max_corrections", 4),
     ("limits", "max_h1_after_mps2", 0),
     ("limits", "max_h2_after_mps2", -0.1),
     ("limits", "min_reduction_db", -1),
@@ -366,6 +369,17 @@ def test_a_verification_goes_on_measuring_only_where_its_recipe_says_how_long() 
         "verification.max_dwell_periods: must be >= verification.dwell_periods "
         f"({data['verification']['dwell_periods']}): the first hold alone measures that "
         f"long, got {data['verification']['dwell_periods'] - 1}")
+
+
+def test_a_verification_corrects_the_trims_only_where_its_recipe_allows() -> None:
+    data = coherent()
+    data["verification"].pop("max_corrections", None)
+    # A recipe written before the key verifies once and judges that.
+    assert parse_recipe(to_toml(data), source=SOURCE).verification.max_corrections == 0
+    data["verification"]["max_corrections"] = 2
+    assert parse_recipe(to_toml(data), source=SOURCE).verification.max_corrections == 2
+    data["verification"]["max_corrections"] = True
+    assert only_problem(data).startswith("verification.max_corrections: ")
 
 
 def test_a_magnitude_sweep_may_hold_its_points_longer_than_the_star_does() -> None:

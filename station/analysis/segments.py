@@ -226,7 +226,8 @@ class Segment:
                        position0=self.position0 + self.microsteps_per_sample * (start - self.start))
 
     def halves(self, window: NDArray[np.float64], orders: int, *, white_noise: bool = False,
-               delays: NDArray[np.float64] | None = None) -> tuple[Harmonics, Harmonics] | None:
+               delays: NDArray[np.float64] | None = None, taper: bool = False
+               ) -> tuple[Harmonics, Harmonics] | None:
         """``harmonics`` of the segment's first and second half (``window`` its samples,
         ``delays`` theirs): whether it was still settling (``halves_shift``). None for a
         segment shorter than two periods or a half too lossy to demodulate."""
@@ -238,7 +239,8 @@ class Segment:
             lo, hi = part.start - self.start, part.stop - self.start
             try:
                 out.append(part.harmonics(window[lo:hi], orders, white_noise=white_noise,
-                                          delays=None if delays is None else delays[lo:hi]))
+                                          delays=None if delays is None else delays[lo:hi],
+                                          taper=taper))
             except ValueError:
                 return None
         return out[0], out[1]
@@ -249,7 +251,7 @@ class Segment:
 
     def harmonics(self, window: NDArray[np.float64], orders: int, *,
                   white_noise: bool = False,
-                  delays: NDArray[np.float64] | None = None) -> Harmonics:
+                  delays: NDArray[np.float64] | None = None, taper: bool = False) -> Harmonics:
         """``demodulate`` of the segment's samples ``window`` on its own angle, with the
         chain's ringing fitted out from the hold's change where it still rings; each
         sample at its own instant where ``delays`` (in samples) says the sensor's clock
@@ -261,7 +263,7 @@ class Segment:
         return demodulate(window, angle, self.samples_per_period,
                           orders=orders, decays=poles,
                           decay_from=self.start - self.held_from, white_noise=white_noise,
-                          uncertain=self.ringing, sweeps=sweeps)
+                          uncertain=self.ringing, sweeps=sweeps, taper=taper)
 
     def decays(self, ringing: tuple[complex, ...], drift: float = 0.0
                ) -> tuple[tuple[complex, ...], tuple[float, ...]]:

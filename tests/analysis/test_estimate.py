@@ -24,6 +24,7 @@ from station.analysis.estimate import (
     TrimPoint,
     Unsupported,
     coherent_estimate,
+    correction_from,
     fit_parabola,
     paper_estimate,
 )
@@ -134,6 +135,41 @@ def test_points_that_claim_far_more_noise_than_they_scatter_by_are_judged_by_the
                       for e in claimed])
     spread = pulls.std(axis=0)
     assert np.all(spread > 0.5) and np.all(spread < 1.0), spread
+
+
+def test_a_hold_at_the_stored_trims_corrects_them_to_the_drives_nearest_null() -> None:
+    shift = np.array([0.42, -0.31, 0.2])  # the null between the drive's whole units
+
+    def response(u: NDArray[np.float64]) -> tuple[complex, complex]:
+        return phasors(u - shift)
+
+    null = OPTIMUM + shift
+    estimate = coherent_estimate(points(cross_design(), seed=0, response=response))
+    # Stored 2.4 / 1.7 mA and 30 split units off, as a sweep on a bending unit may leave it.
+    stored = np.round(null + np.array([2.4, -1.7, 30.0]))
+    h1, h2 = response(stored)
+    held = TrimPoint(trims_of(stored), h1, NOISE_VAR, h2, NOISE_VAR)
+    correction = correction_from(estimate, held)
+    assert correction is not None
+    found = errors(correction.null) - shift
+    assert abs(found[0]) < 0.05 and abs(found[1]) < 0.05 and abs(found[2]) < 1.0, found
+    # The drive holds whole milliamperes and gain units: of the four corners round the
+    # null, the one the maps say leaves the least H1, and what they say it leaves.
+    t = correction.trims
+    assert t == t.rounded()
+    at = np.array([t.offset_a_mA, t.offset_b_mA, (t.gain_a - t.gain_b) / 2])
+    corners = [abs(response(np.array([a, b, at[2]]))[0])
+               for a in (math.floor(null[0]), math.ceil(null[0]))
+               for b in (math.floor(null[1]), math.ceil(null[1]))]
+    assert abs(response(at)[0]) == pytest.approx(min(corners))
+    assert correction.h1_mps2 == pytest.approx(abs(response(at)[0]), rel=0.05)
+    assert correction.h2_mps2 == pytest.approx(abs(response(at)[1]), rel=0.05, abs=1e-4)
+
+
+def test_an_estimate_without_phasor_maps_corrects_nothing() -> None:
+    estimate = paper_estimate(points(cross_design(split_at=(-120.0, 55.0)), seed=1))
+    h1, h2 = phasors(OPTIMUM)
+    assert correction_from(estimate, TrimPoint(trims_of(OPTIMUM), h1, 1.0, h2, 1.0)) is None
 
 
 def test_coherent_estimate_uses_the_mixing_term_when_h2_bends_with_h1() -> None:

@@ -13,6 +13,7 @@ from station.analysis.sampling import (
     ClockPhase,
     RateObservation,
     observe_rate,
+    pooled_clock,
     pooled_rate,
     sample_delays,
     wrap_sign,
@@ -130,6 +131,20 @@ def test_one_hold_s_transient_is_not_taken_for_the_clock() -> None:
     observations += [RateObservation(r * 1e-6, s * 1e-6) for r, s in agreeing]
     assert pooled_rate(observations) == pytest.approx(-361e-6, abs=15e-6)
     assert pooled_rate([RateObservation(0.0, math.inf)] * 5) == 0.0
+
+
+def test_holds_timed_closely_outweigh_the_scatter_of_those_timed_loosely() -> None:
+    # Seed 508770410, a rough belt with a 215 ppm clock: two holds timed it to 10 ppm, the
+    # rest scattered about it by some twice their own σ. The median of the rates alone,
+    # with their spread for its error, found 210 ± 53 ppm and took it for no clock.
+    timed = [(387, 82), (317, 164), (194, 30), (125, 63), (361, 45), (645, 219),
+             (195, 9), (210, 10), (164, 41)]
+    pooled = pooled_clock([RateObservation(r * 1e-6, s * 1e-6) for r, s in timed])
+    assert pooled.clear_of_zero
+    assert pooled.rate == pytest.approx(200e-6, abs=15e-6)
+    # The same holds about no clock at all stay no clock.
+    still = [RateObservation((r - 200) * 1e-6, s * 1e-6) for r, s in timed]
+    assert pooled_rate(still) == 0.0
 
 
 def test_a_rate_beyond_what_a_hold_can_follow_is_a_transient_not_a_clock() -> None:
