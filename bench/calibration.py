@@ -13,13 +13,15 @@ paper's magnitude method in the recipe's rounds), side by side in the same run.
 A unit should pass when a perfect station would pass it (``plant_verdict``): the plant's
 optimum (``optimal_trims``, every effect it has included) lies within the recipe's trim
 bounds and leaves a ripple within the recipe's limits. One that does not pass is a false
-fail, and a unit that should not pass but does is a false pass. A unit is marginal, and
-counted apart, where trims within the accuracy asked of the station (``RMS_OFFSET_mA``,
-``RMS_GAIN``) of its optimum could leave a ripple on either side of a limit: no station
-that meets its accuracy can decide it (its irreducible H2 at 0.2455 m/s² against a limit
-of 0.25 reads 0.2526 m/s² a gain unit or three away). Accuracy is the
-estimate's distance from that optimum over the units that should pass, whether or not
-the recipe then stored it. It is also set against each run's own σ: the RMS of error
+fail, and a unit that should not pass but does is a false pass; one that passed although
+the plant's own steady ripple at the trims it shipped with is over a limit is counted
+too (its verification read low: a transient's leakage, or a correction made on one). A
+unit is marginal, and counted apart, where trims within the accuracy asked of the
+station (``RMS_OFFSET_mA``, ``RMS_GAIN``) of its optimum could leave a ripple on either
+side of a limit: no station that meets its accuracy can decide it (its irreducible H2
+at 0.2455 m/s² against a limit of 0.25 reads 0.2526 m/s² a gain unit or three away).
+Accuracy is the estimate's distance from that optimum over the units that should pass,
+whether or not the recipe then stored it. It is also set against each run's own σ: the RMS of error
 over σ (the pull) says whether the σ the limits judge is honest, and a unit whose σ
 exceeds a third of the worst error asked is noise-limited (``RESOLVED_SIGMA_mA``), the
 accuracy given again over the others, with the motion that would bring every unit

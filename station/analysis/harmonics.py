@@ -469,7 +469,7 @@ def demodulate(
     what the pole's uncertainty costs them. ``sweeps`` (rad per sample², one per decay
     from the first, missing ones 0) are how fast each decay's frequency moves over the
     window: a ring on a spring that changes as the rotor turns is a chirp.
-    ``taper`` weighs the samples by a Hann window (``TAPER``): content between the
+    ``taper`` weighs the samples by a Hann window (``_hann``): content between the
     orders, a transient ringing at a mode's own frequency, then leaks into them through
     sidelobes falling as the cube of the distance instead of its first power, for
     about 1.5 times the variance (the variance returned is the weighted fit's).
@@ -506,6 +506,7 @@ def demodulate(
     white = (_white_variance(angle[ok], y, x, fitted=fitted, nyquist=nyquist, sigma2=sigma2)
              if white_noise else sigma2)
     per_unit = np.diag(np.linalg.pinv(x.T @ x))
+    cost = np.ones_like(per_unit)  # what the taper costs each coefficient's variance
     if weight is not None:
         # White noise through the weighted fit: the sandwich (XᵀWX)⁻¹XᵀW²X(XᵀWX)⁻¹.
         bread = np.linalg.pinv(x.T @ (x * weight[:, None]))
@@ -523,10 +524,9 @@ def demodulate(
         r[ok] = residual
         z = period_phasors(r, ok, angle, samples_per_period, range(1, kept + 1))
         scatter = np.sum(np.abs(z) ** 2, axis=0) / (periods * (periods - 1))
-        if weight is not None:
-            # The flat fit's scatter, at what the taper costs each order.
-            scatter = scatter * ((cost[1 : fitted + 1] + cost[fitted + 1 : 2 * fitted + 1])
-                                 / 2.0)[:kept]
+        # The flat fit's scatter, at what the taper costs each order.
+        scatter = scatter * ((cost[1 : fitted + 1] + cost[fitted + 1 : 2 * fitted + 1])
+                             / 2.0)[:kept]
         variance[:kept] = np.maximum(variance[:kept], scatter)
     return Harmonics(
         phasors=phasors,
