@@ -230,12 +230,14 @@ def test_a_sensor_on_its_own_clock_is_followed_sample_by_sample(db: Path, modbus
     (725234896, -322),  # a belt with a load resonance: no hold could time its clock
     (1728856850, 0),  # a belt with friction and an eccentric rotor, and no clock at all
 ])
-def test_the_phasors_time_a_clock_that_the_holds_could_not(db: Path, seed: int,
-                                                            ppm: int) -> None:
-    # A belt's holds ring after every step and time the clock to no better than
-    # ±1000 ppm, but a clock turns every later hold's phasors in proportion to its |H|,
-    # which the trims cannot explain: the phasors time it instead. An eccentric rotor
-    # turns them too, with the rotor's angle: it is modelled, not taken for a clock.
+def test_a_belt_whose_holds_ring_has_its_clock_timed_by_the_phasors(db: Path, seed: int,
+                                                                     ppm: int) -> None:
+    # A belt's holds ring after every step, and most time the clock to no better than
+    # ±1000 ppm; but a clock turns every later hold's phasors in proportion to its |H|,
+    # which the trims cannot explain: the phasors time it. An eccentric rotor turns them
+    # too, with the rotor's angle: it is modelled, not taken for a clock. (725234896's
+    # holds pooled by their median alone timed no clock; weighed by their precision, the
+    # few that settled time it too.)
     line = draw_line_unit(seed)
     assert line.unit.load is LoadKind.BELT
     assert line.unit.sensor.clock_drift_ppm == pytest.approx(ppm, abs=0.5)
@@ -244,8 +246,9 @@ def test_the_phasors_time_a_clock_that_the_holds_could_not(db: Path, seed: int,
     assert run.verdict is Verdict.PASS, run.reason
     assert run.fit is not None
     clock = run.fit["sensor_clock"]
-    assert clock["ppm"] == 0.0
-    assert abs(clock["phasors_ppm"] - line.unit.sensor.clock_drift_ppm) < 15
+    truth = line.unit.sensor.clock_drift_ppm
+    assert clock["ppm"] == 0.0 or abs(clock["ppm"] - truth) < 15
+    assert abs(clock["phasors_ppm"] - truth) < 15
     _assert_on_the_plants_optimum(run, seed)
 
 
