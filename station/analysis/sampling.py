@@ -317,8 +317,9 @@ def pooled_clock(observations: Sequence[RateObservation]) -> RateObservation:
     """The clock the holds agree on and its standard error, clear of zero or not (σ
     infinite with fewer than ``MIN_POOLED`` holds timed).
 
-    The holds' median, each weighed by its own precision, and its standard error from
-    the holds' own σ scaled by how far, in those σ, the typical hold lies from it. A
+    The holds' median, each weighed by its own precision (but none above the typical
+    hold's), and its standard error from the holds' σ scaled by how far, in those σ, the
+    typical hold lies from it. A
     hold's σ counts only its noise, and the transient a trim change leaves in a short
     hold turns its phasors too: on a disk with a load resonance and a −356 ppm clock
     (seed 9329) the first round's holds, 2 + 4 periods after steps of 100 mA, timed

@@ -147,6 +147,16 @@ def test_holds_timed_closely_outweigh_the_scatter_of_those_timed_loosely() -> No
     assert pooled_rate(still) == 0.0
 
 
+def test_a_few_holds_timed_far_more_closely_than_the_rest_do_not_outvote_them() -> None:
+    # Seed 5020 on Modbus: the longest holds' speed errors took up the −226 ppm clock and
+    # left 5 ± 0.1 ppm; the other holds timed it within their 8 ppm. Weighed by their own
+    # σ alone, the eight would be the clock.
+    rng = np.random.default_rng(3)
+    biased = [RateObservation(4.7e-6, 0.1e-6)] * 8
+    honest = [RateObservation(float(r) * 1e-6, 8e-6) for r in rng.normal(-226.0, 18.0, 28)]
+    assert pooled_rate(biased + honest) == pytest.approx(-226e-6, abs=12e-6)
+
+
 def test_a_rate_beyond_what_a_hold_can_follow_is_a_transient_not_a_clock() -> None:
     # Ringing holds of a 137 ppm unit once pooled to −21,058 ppm: a clock that fast would
     # wrap within every hold. Such holds are left out; alone, they pool to nothing.
