@@ -768,8 +768,17 @@ def _slopes(fit: AffineFit) -> NDArray[np.complex128]:
     return slopes
 
 
+CORRECTION_SIGMAS = 4.0
+"""How far, in the estimate's own σ per axis, a correction may move the null: a
+verification that puts it further than that says the maps' slopes are wrong, not where
+the null is. A rough disk's split, σ 13 units, read an H2 of 0.40 m/s² (the plant: 0.40)
+and was "corrected" 130 units on a slope a tenth of the truth's, to 3.4 m/s² (seed
+2116120135)."""
+
+
 def correction_from(estimate: TrimEstimate, held: TrimPoint) -> Correction | None:
-    """The null as seen from a hold at the stored trims; None without phasor maps.
+    """The null as seen from a hold at the stored trims; None without phasor maps, or
+    where it lies beyond ``CORRECTION_SIGMAS`` of the estimate's own.
 
     The sweep's maps are fitted over points many mA apart, where the response bends
     and a few-% error in the slopes moves the null by a fraction of a mA; a hold at the
@@ -785,6 +794,11 @@ def correction_from(estimate: TrimEstimate, held: TrimPoint) -> Correction | Non
     j1, j2 = _slopes(fits[1]), _slopes(fits[2])
     at = np.array([held.coordinate(axis) for axis in AXES])
     null = at + h1_then_h2_null(held.h1, held.h2, j1, j2)
+    t, sd = estimate.trims, estimate.sigma
+    was = np.array([t.offset_a_mA, t.offset_b_mA, (t.gain_a - t.gain_b) / 2.0])
+    reach = CORRECTION_SIGMAS * np.array([sd.offset_a_mA, sd.offset_b_mA, sd.gain_a])
+    if not np.all(np.abs(null - was) <= reach):
+        return None
     gain_sum = held.trims.gain_a + held.trims.gain_b
     gain_a, gain_b = _split_to_gains(float(null[2]), gain_sum)
     gains = (float(round(gain_a)), float(round(gain_b)))

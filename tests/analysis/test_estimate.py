@@ -18,6 +18,7 @@ import pytest
 from numpy.typing import NDArray
 
 from station.analysis.estimate import (
+    CORRECTION_SIGMAS,
     SPLIT_SPREAD,
     Method,
     TrimAxis,
@@ -164,6 +165,17 @@ def test_a_hold_at_the_stored_trims_corrects_them_to_the_drives_nearest_null() -
     assert abs(response(at)[0]) == pytest.approx(min(corners))
     assert correction.h1_mps2 == pytest.approx(abs(response(at)[0]), rel=0.05)
     assert correction.h2_mps2 == pytest.approx(abs(response(at)[1]), rel=0.05, abs=1e-4)
+
+
+def test_a_hold_that_puts_the_null_far_beyond_the_estimates_sigma_corrects_nothing() -> None:
+    estimate = coherent_estimate(points(cross_design(), seed=0))
+    # H2 as 200 split units would leave it: far beyond σ, the slopes are not to be trusted.
+    h1, h2 = phasors(OPTIMUM)
+    far = TrimPoint(trims_of(OPTIMUM), h1, NOISE_VAR, h2 + complex(J2[2]) * 200.0, NOISE_VAR)
+    assert CORRECTION_SIGMAS * estimate.sigma.gain_a < 200.0
+    assert correction_from(estimate, far) is None
+    near = TrimPoint(trims_of(OPTIMUM), h1, NOISE_VAR, h2 + complex(J2[2]) * 1.0, NOISE_VAR)
+    assert correction_from(estimate, near) is not None
 
 
 def test_an_estimate_without_phasor_maps_corrects_nothing() -> None:
