@@ -186,18 +186,14 @@ def plant_verdict(unit: UnitParams, recipe: Recipe) -> PlantVerdict:
     of the station: the ripple bounded over trims ``RMS_OFFSET_mA`` and ``RMS_GAIN``
     from the optimum, each axis's move taken at its worst (the ripple is affine in the
     trims that close to its optimum)."""
-    amplitude, hz = float(recipe.motion.amplitude_mA), recipe.motion.electrical_hz
-
-    def ripple(trims: Trims) -> NDArray[np.complex128]:
-        return steady_ripple(unit, recipe, trims)
-
-    truth = optimal_trims(unit, amplitude_mA=amplitude, electrical_hz=hz)
-    before, after = ripple(FACTORY), ripple(truth)
+    truth = optimal_trims(unit, amplitude_mA=float(recipe.motion.amplitude_mA),
+                          electrical_hz=recipe.motion.electrical_hz)
+    before, after = steady_ripple(unit, recipe, FACTORY), steady_ripple(unit, recipe, truth)
     moves = ((RMS_OFFSET_mA, 0.0, 0.0, 0.0), (0.0, RMS_OFFSET_mA, 0.0, 0.0),
              (0.0, 0.0, RMS_GAIN, -RMS_GAIN), (0.0, 0.0, RMS_GAIN, RMS_GAIN))
     at = (truth.offset_a_mA, truth.offset_b_mA, truth.gain_a, truth.gain_b)
-    spread = sum((np.abs(ripple(Trims(*(a + b for a, b in zip(at, move, strict=True))))
-                         - after) for move in moves), np.zeros(2))
+    moved = (Trims(*(a + b for a, b in zip(at, move, strict=True))) for move in moves)
+    spread = sum((np.abs(steady_ripple(unit, recipe, t) - after) for t in moved), np.zeros(2))
     was = Ripple(float(abs(before[0])), float(abs(before[1])))
 
     def passes(h: NDArray[np.float64]) -> bool:

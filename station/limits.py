@@ -135,6 +135,11 @@ def reduction_db(before: float, after: float) -> float:
     return 20.0 * math.log10(before / after)
 
 
+RIPPLE_LIMITS = frozenset({LimitName.H1_AFTER, LimitName.H2_AFTER, LimitName.H1_REDUCTION,
+                           LimitName.H2_REDUCTION})
+"""The limits ``ripple_checks`` judges: what a verification alone can fail."""
+
+
 def ripple_checks(limits: Limits, before: Ripple | None, after: Ripple) -> tuple[LimitCheck, ...]:
     """Limits judged on the verification run, against the baseline where one exists.
 

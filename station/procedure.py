@@ -73,6 +73,7 @@ from station.errors import (
     StationError,
 )
 from station.limits import (
+    RIPPLE_LIMITS,
     clipping_check,
     estimate_checks,
     ripple_checks,
@@ -84,7 +85,7 @@ from station.recipes import Clipping, CoherentSweep, MagnitudeSweep, PaperSweep,
 from station.recorder import RecordingWriter
 from station.recording import RecordingMetadata
 from station.runner import Motion
-from station.runs import LimitCheck, LimitName, Ripple, Run, Verdict
+from station.runs import LimitCheck, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for
 from station.selfcheck import sensor_in_motion_problems, sensor_self_check
 from station.serials import Serial, label_for
@@ -815,7 +816,7 @@ class _Calibration:
         fails as measured, and its failing costs no further motion.
         """
         failed = {c.name for c in checks if c.passed is False}
-        if not failed or not failed <= _RIPPLE or self.verified is None:
+        if not failed or not failed <= RIPPLE_LIMITS or self.verified is None:
             return None
         correction = correction_from(estimate, self.verified.point(self.clock_used))
         limits = self.recipe.limits
@@ -859,10 +860,6 @@ class _Calibration:
             )
         )
         self._store(drive)
-
-
-_RIPPLE = frozenset({LimitName.H1_AFTER, LimitName.H2_AFTER, LimitName.H1_REDUCTION,
-                     LimitName.H2_REDUCTION})
 
 
 def _from_vertices(fits: Sequence[ParabolaFit]) -> TrimEstimate:

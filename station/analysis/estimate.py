@@ -505,11 +505,17 @@ class _Affine:
         # Centring is undone for every term; the mixing term then simply drops out,
         # because its regressor is zero wherever H1 is.
         const = complex(c[0] - c[1:] @ self.centre)
-        slopes = np.zeros(len(AXES), dtype=np.complex128)
-        for term, slope in zip(self.terms, c[1:], strict=True):
-            if term.axis is not None:
-                slopes[AXES.index(term.axis)] = slope
-        return const, slopes
+        return const, _trim_slopes(self.terms, c[1:])
+
+
+def _trim_slopes(terms: Sequence[Term], coefficients: NDArray[np.complex128] | Sequence[complex]
+                 ) -> NDArray[np.complex128]:
+    """A map's slope per trim axis (zero where the map has no term for it)."""
+    slopes = np.zeros(len(AXES), dtype=np.complex128)
+    for term, slope in zip(terms, coefficients, strict=True):
+        if term.axis is not None:
+            slopes[AXES.index(term.axis)] = slope
+    return slopes
 
 
 def _fit(points: Sequence[TrimPoint], order: int, terms: Sequence[Term],
@@ -760,14 +766,6 @@ class Correction:
     h2_mps2: float
 
 
-def _slopes(fit: AffineFit) -> NDArray[np.complex128]:
-    slopes = np.zeros(len(AXES), dtype=np.complex128)
-    for term, slope in zip(fit.terms, fit.coefficients, strict=True):
-        if term.axis is not None:
-            slopes[AXES.index(term.axis)] = slope
-    return slopes
-
-
 CORRECTION_SIGMAS = 4.0
 """How far, in the estimate's own σ per axis, a correction may move the null: a
 verification that puts it further than that says the maps' slopes are wrong, not where
@@ -791,7 +789,7 @@ def correction_from(estimate: TrimEstimate, held: TrimPoint) -> Correction | Non
     fits = {fit.order: fit for fit in estimate.affine}
     if 1 not in fits or 2 not in fits:
         return None
-    j1, j2 = _slopes(fits[1]), _slopes(fits[2])
+    j1, j2 = (_trim_slopes(fits[k].terms, fits[k].coefficients) for k in (1, 2))
     at = np.array([held.coordinate(axis) for axis in AXES])
     null = at + h1_then_h2_null(held.h1, held.h2, j1, j2)
     t, sd = estimate.trims, estimate.sigma

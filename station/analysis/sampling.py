@@ -319,17 +319,17 @@ def pooled_clock(observations: Sequence[RateObservation]) -> RateObservation:
 
     The holds' median, each weighed by its own precision (but none above the typical
     hold's), and its standard error from the holds' σ scaled by how far, in those σ, the
-    typical hold lies from it. A
-    hold's σ counts only its noise, and the transient a trim change leaves in a short
-    hold turns its phasors too: on a disk with a load resonance and a −356 ppm clock
-    (seed 9329) the first round's holds, 2 + 4 periods after steps of 100 mA, timed
-    −1,700 to +2,800 ppm with σ under 300, while the next rounds' holds scattered about
-    the clock by ±70 ppm: a weighted mean takes one hold's transient for the clock, an
-    agreement test within each σ finds none. A median of the rates alone, with their
-    spread for its error, weighs a hold timed to 10 ppm as one timed to 200: on a rough
-    belt with a 215 ppm clock (seed 508770410) holds of 195 ± 9 and 210 ± 10 ppm beside
-    seven of 125-645 ± 30-219 pooled to 210 ± 53, not clear of zero; its wrap then fell
-    unplaced in the verification, which read 0.17 m/s² of H1 where the unit had 0.003.
+    typical hold lies from it. A hold's σ counts only its noise, and the transient a
+    trim change leaves in a short hold turns its phasors too: on a disk with a load
+    resonance and a −356 ppm clock (seed 9329) the first round's holds, 2 + 4 periods
+    after steps of 100 mA, timed −1,700 to +2,800 ppm with σ under 300, while the next
+    rounds' holds scattered about the clock by ±70 ppm: a weighted mean takes one hold's
+    transient for the clock, an agreement test within each σ finds none. A median of the
+    rates alone, with their spread for its error, weighs a hold timed to 10 ppm as one
+    timed to 200: on a rough belt with a 215 ppm clock (seed 508770410) holds of 195 ± 9
+    and 210 ± 10 ppm beside seven of 125-645 ± 30-219 pooled to 210 ± 53, not clear of
+    zero; its wrap then fell unplaced in the verification, which read 0.17 m/s² of H1
+    where the unit had 0.003.
     """
     none = RateObservation(0.0, math.inf)
     timed = [o for o in observations if math.isfinite(o.sigma) and abs(o.rate) <= MAX_RATE]
@@ -340,7 +340,8 @@ def pooled_clock(observations: Sequence[RateObservation]) -> RateObservation:
     # transient, a speed error that took up part of the clock) does not shrink with its
     # noise. A Modbus unit's longest holds timed 5 ± 0.1 ppm of a −226 ppm clock (seed
     # 5020), its other 28 holds −190 to −260 ± 8.
-    sigmas = np.maximum([o.sigma for o in timed], float(np.median([o.sigma for o in timed])))
+    own = np.array([o.sigma for o in timed])
+    sigmas = np.maximum(own, float(np.median(own)))
     weights = 1.0 / sigmas**2
     order = np.argsort(rates)
     cumulative = np.cumsum(weights[order])
