@@ -62,10 +62,10 @@ from numpy.typing import NDArray
 from bench.record import BenchRecord, Goal
 from station.analysis.reader import read_recording
 from station.benches import SIM_MODBUS_SPEC, SIM_SPEC, BenchSpec
-from station.core import GAIN_UNITY, Trims
+from station.core import GAIN_UNITY, SATURATED_COUNTS, STANDARD_GRAVITY, Trims
 from station.limits import bound_checks, ripple_checks
 from station.paths import HOME_ENV
-from station.physics.optimum import optimal_trims, steady_harmonics
+from station.physics.optimum import optimal_trims, steady_harmonics, steady_reading
 from station.physics.params import UnitParams
 from station.recipes import Recipe, load_recipe
 from station.runs import Ripple, Verdict
@@ -139,6 +139,7 @@ class Outcome:
     # Passed, yet the plant's steady ripple at the trims it shipped with is over a limit:
     # a verification that read low (a transient's leakage, a correction made on it).
     shipped_over: bool = False
+    unverifiable: bool = False  # ``PlantVerdict.unverifiable``
 
     @property
     def silent_clipping(self) -> bool:
@@ -169,6 +170,9 @@ class PlantVerdict:
     truth: Trims  # the plant's own optimum
     should_pass: bool  # a perfect station would pass the unit
     marginal: bool  # trims within the accuracy asked of the station could go either way
+    # The sensor's steady reading at the optimum reaches the recipe's full scale: no
+    # station can measure the ripple it is judged on there (``unverifiable``).
+    unverifiable: bool = False
 
 
 def steady_ripple(unit: UnitParams, recipe: Recipe, trims: Trims) -> NDArray[np.complex128]:
@@ -204,7 +208,20 @@ def plant_verdict(unit: UnitParams, recipe: Recipe) -> PlantVerdict:
     level = np.abs(after)
     should = passes(level)
     either = {should, passes(np.maximum(level - spread, 0.0)), passes(level + spread)}
-    return PlantVerdict(truth, should, len(either) > 1)
+    unmeasurable = unverifiable(unit, recipe, truth)
+    return PlantVerdict(truth, should and not unmeasurable, len(either) > 1, unmeasurable)
+
+
+def unverifiable(unit: UnitParams, recipe: Recipe, trims: Trims) -> bool:
+    """Whether the sensor's steady reading at ``trims`` reaches the recipe's full scale
+    on any axis: a waveform that peaks over the rail at the same phase in every period
+    carries a part of each harmonic that no sample holds (development seed 1742693704:
+    H1 read 0.014 m/s² at ±16 g, 0.42 where nothing clipped), so a perfect station with
+    the ICD's sensor could not verify the unit either, and must not pass it."""
+    reading, _ = steady_reading(unit, trims, amplitude_mA=float(recipe.motion.amplitude_mA),
+                                electrical_hz=recipe.motion.electrical_hz)
+    full_scale = recipe.motion.sensor_range_g * STANDARD_GRAVITY * SATURATED_COUNTS / 32768.0
+    return bool(np.abs(reading).max() >= full_scale)
 
 
 def _recipe_variant(folder: Path, name: str, changes: dict[str, int]) -> Path:
@@ -264,7 +281,7 @@ def _calibrate_one(seed: int, leg: str, recipe: str) -> Outcome:
         over = bool(h1 > loaded.limits.max_h1_after_mps2 or h2 > loaded.limits.max_h2_after_mps2)
     return Outcome(line, leg, str(run.verdict), run.reason or "", plant.should_pass,
                    run.motion_s if run.motion_s is not None else math.nan, wall, offset, gain,
-                   clipped, said, plant.marginal, sigma, over)
+                   clipped, said, plant.marginal, sigma, over, plant.unverifiable)
 
 
 def _run_all(seeds: Sequence[int], subset: int) -> list[Outcome]:
@@ -316,6 +333,10 @@ def _leg_records(leg: str, judged: list[Outcome]) -> list[BenchRecord]:
                     Goal.AT_MOST),
         BenchRecord(f"calibration_marginal_units_{leg}", float(sum(o.marginal for o in outcomes)),
                     "units", math.inf, Goal.AT_MOST),
+        # Units whose reading at their optimum reaches full scale: they must not pass.
+        BenchRecord(f"calibration_unverifiable_units_{leg}",
+                    float(sum(o.unverifiable for o in outcomes)), "units", math.inf,
+                    Goal.AT_MOST),
         BenchRecord(f"calibration_offset_error_max_mA_{leg}", max(offsets, default=math.nan),
                     "mA", WORST_OFFSET_mA, Goal.AT_MOST),
         BenchRecord(f"calibration_gain_error_max_{leg}", max(gains, default=math.nan),

@@ -33,6 +33,7 @@ from typing import Protocol
 from drivers.base import CalibrationRecord, Drive
 from station import __version__
 from station.analysis.estimate import (
+    CLIPPED_NOTE,
     Method,
     ParabolaFit,
     TrimAxis,
@@ -85,7 +86,7 @@ from station.recipes import Clipping, CoherentSweep, MagnitudeSweep, PaperSweep,
 from station.recorder import RecordingWriter
 from station.recording import RecordingMetadata
 from station.runner import Motion
-from station.runs import LimitCheck, Ripple, Run, Verdict
+from station.runs import LimitCheck, LimitName, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for
 from station.selfcheck import sensor_in_motion_problems, sensor_self_check
 from station.serials import Serial, label_for
@@ -369,7 +370,7 @@ class _Calibration:
             return
         self._write_and_store(stored)
         after = self._verify(stored)
-        checks = (*checks, *ripple_checks(self.recipe.limits, run.before, after))
+        checks = (*checks, *ripple_checks(self.recipe.limits, run.before, after, self._hidden()))
         for _ in range(self.recipe.verification.max_corrections):
             corrected = self._correct(estimate, stored, checks)
             if corrected is None:
@@ -391,6 +392,11 @@ class _Calibration:
             # The likely cause, in words the operator can act on.
             run.reason += (f"; {len(self.left_out)} point(s) left out because the ripple "
                            f"clipped the sensor's ±{self.recipe.motion.sensor_range_g} g")
+        sigma = {LimitName.OFFSET_SIGMA, LimitName.GAIN_SIGMA}
+        if (any(c.name in sigma and c.passed is False for c in checks)
+                and any(f"{CLIPPED_NOTE}: " in w for w in run.warnings)):
+            run.reason += (f"; the ripple over the sensor's ±{self.recipe.motion.sensor_range_g}"
+                           " g hides part of each harmonic in every hold")
 
     # -- steps --------------------------------------------------------------------------------
 
@@ -818,6 +824,10 @@ class _Calibration:
         failed = {c.name for c in checks if c.passed is False}
         if not failed or not failed <= RIPPLE_LIMITS or self.verified is None:
             return None
+        run = self.run_record
+        assert run.after is not None
+        if verdict_for(ripple_checks(self.recipe.limits, run.before, run.after)) is Verdict.PASS:
+            return None  # failed on what clipping may hide, which no trim moves
         correction = correction_from(estimate, self.verified.point(self.clock_used))
         limits = self.recipe.limits
         if (correction is None or correction.trims == stored
@@ -827,9 +837,7 @@ class _Calibration:
         checks = estimate_checks(limits, estimate, correction.trims)
         if verdict_for(checks) is Verdict.FAIL:
             return None  # out of the recipe's bounds: the unit keeps what was verified
-        run = self.run_record
         was = run.after
-        assert was is not None
         run.warnings.append(
             f"{Phase.VERIFY.value}: {' and '.join(sorted(failed))} over the limit at "
             f"{_trims_text(stored)} (H1 {was.h1:.3g}, H2 {was.h2:.3g} m/s²); the sweep's maps "
@@ -839,7 +847,19 @@ class _Calibration:
             f"H2 {correction.h2_mps2:.3g} m/s²) and verified again")
         self._write_and_store(correction.trims)
         after = self._verify(correction.trims)
-        return correction.trims, (*checks, *ripple_checks(limits, run.before, after))
+        return correction.trims, (*checks, *ripple_checks(limits, run.before, after,
+                                                          self._hidden()))
+
+    def _hidden(self) -> float:
+        """What the judged verification hold's clipping may hide, said where it is any."""
+        judged = self.verified
+        if judged is None or not judged.hidden:
+            return 0.0
+        self.run_record.warnings.append(
+            f"{Phase.VERIFY.value}: {judged.saturated} samples over the sensor's "
+            f"±{self.recipe.motion.sensor_range_g} g may hide up to {judged.hidden:.3g} m/s² of "
+            "each harmonic; the unit is judged on the most it could have")
+        return judged.hidden
 
     def _settling(self, measured: Sequence[Measured]) -> tuple[int, ...]:
         limits = self.recipe.limits

@@ -19,14 +19,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from drivers.base import DriveState, decode_statusword
 from station import benches
 from station.cli import main
-from station.core import LoadKind, Trims
+from station.core import STANDARD_GRAVITY, LoadKind, Trims
 from station.limits import trims_within
-from station.physics.optimum import optimal_trims, steady_harmonics
+from station.physics.optimum import optimal_trims, steady_harmonics, steady_reading
 from station.procedure import Step
 from station.recipes import load_recipe
 from station.recording import read_metadata
@@ -427,6 +428,23 @@ def test_a_unit_too_rough_for_the_sensor_fails_saying_so_with_its_trims_untouche
         (kept,) = store.history(serial)
     assert kept.verdict is Verdict.FAIL and kept.reason == run.reason
     assert kept.trims_before == Trims()
+
+
+def test_a_unit_whose_ripple_peaks_over_the_rail_at_every_trim_fails_saying_so(db: Path) -> None:
+    # Population seed 1742693704: flux harmonics and current distortion peak over ±16 g at
+    # the same phase of every period whatever the trims. The fit never saw those phases:
+    # it read H1 0.014 m/s² where the plant has 0.42, and the unit passed 15 mA off.
+    unit = draw_line_unit(1742693704).unit
+    reading, _ = steady_reading(unit, optimal_trims(unit))
+    assert np.abs(reading).max() > 16 * STANDARD_GRAVITY  # even at its optimum
+    station, serial = _drawn_station(db, 1742693704)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.FAIL
+    assert run.reason is not None
+    assert "the ripple over the sensor's ±16 g hides part of each harmonic" in run.reason
+    assert any(w.startswith("clipping: ") for w in run.warnings)
+    assert {c.name for c in run.failed_limits} == {LimitName.OFFSET_SIGMA, LimitName.GAIN_SIGMA}
+    assert not run.trims_stored and run.trims_after is None
 
 
 def _clipped(run: Run, range_g: int = 16) -> tuple[int, int]:

@@ -320,6 +320,22 @@ def test_ripple_checks_pass_a_unit_brought_within_the_after_limits() -> None:
     assert verdict_for(checks.values()) is Verdict.PASS
 
 
+def test_a_verification_that_clipped_is_judged_on_the_most_it_could_have() -> None:
+    # Seed 1742693704: 0.014 m/s² of H1 read at ±16 g, where the plant has 0.42; the samples
+    # over the rail could hide up to 0.4 of it.
+    before, after = Ripple(0.6, 0.5), Ripple(0.014, 0.1)
+    checks = by_name(ripple_checks(LIMITS, before, after, hidden=0.4))
+    h1, h2 = checks[LimitName.H1_AFTER], checks[LimitName.H2_AFTER]
+    assert (h1.value, h1.passed) == (pytest.approx(0.414), False)
+    assert (h2.value, h2.passed) == (pytest.approx(0.5), False)
+    assert "0.014 and 0.1 m/s² measured, and up to 0.4 more" in h1.note
+    assert checks[LimitName.H1_REDUCTION].value == pytest.approx(20 * math.log10(0.6 / 0.414))
+    # A little clipping that cannot decide the verdict changes nothing but the figures.
+    checks = by_name(ripple_checks(LIMITS, before, after, hidden=0.01))
+    assert verdict_for(checks.values()) is Verdict.PASS
+    assert checks[LimitName.H1_AFTER].value == pytest.approx(0.024)
+
+
 def test_after_limits_fail_each_harmonic_on_its_own() -> None:
     checks = by_name(ripple_checks(LIMITS, Ripple(1.0, 2.0), Ripple(0.09, 0.1)))
     assert checks[LimitName.H1_AFTER].passed is False

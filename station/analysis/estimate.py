@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 
 import numpy as np
@@ -77,6 +77,9 @@ class TrimPoint:
     # e^{jθ} of the rotor's mechanical angle at the hold's middle, where the drive reports
     # its angle: an eccentric rotor adds to each hold's phasors a part that turns with it.
     rotor: complex | None = None
+    # The most the hold's samples over the sensor's rail could move each phasor (m/s²):
+    # a bias of unknown sign, also in the variances, that ``_clipping_spread`` propagates.
+    hidden: float = 0.0
 
     def coordinate(self, axis: TrimAxis) -> float:
         t = self.trims
@@ -378,12 +381,23 @@ def fit_parabola(points: Sequence[TrimPoint], axis: TrimAxis) -> tuple[ParabolaF
     used = np.zeros(x.size, dtype=bool)
     used[idx] = True
     c0 = best.coef[0] - best.coef[1] ** 2 / (4 * c2)
+
+    def vertex_of(moved: Sequence[TrimPoint]) -> NDArray[np.float64]:
+        moved_y, moved_sigma = _power(moved, order)
+        return np.array([_fit_parabola(x[idx], moved_y[idx], moved_sigma[idx], x.size).vertex])
+
+    vertex_sigma = best.vertex_sigma()
+    spread = _clipping_spread(vertex_of, sweep)
+    if spread is not None:
+        warnings.extend(f"{axis.value}: {note}" for note in
+                        _clipping_note(spread, np.array([vertex_sigma])))
+        vertex_sigma = float(np.hypot(vertex_sigma, spread[0]))
     return (
         ParabolaFit(
             axis=axis,
             order=order,
             vertex=vertex,
-            vertex_sigma=best.vertex_sigma(),
+            vertex_sigma=vertex_sigma,
             curvature=float(c2),
             floor=float(c0),
             swept=(lo, hi),
@@ -394,6 +408,50 @@ def fit_parabola(points: Sequence[TrimPoint], axis: TrimAxis) -> tuple[ParabolaF
         ),
         warnings,
     )
+
+
+CLIPPED_NOTE = "clipping"
+"""How an estimate's warning begins where clipping decides its σ (``_clipping_note``)."""
+_TURNS = (1.0 + 0.0j, 1.0j, -1.0 + 0.0j, -1.0j)
+
+
+def _clipping_spread(estimate: Callable[[Sequence[TrimPoint]], NDArray[np.float64]],
+                     points: Sequence[TrimPoint]) -> NDArray[np.float64] | None:
+    """How far an estimate can move, per quantity, on what its points' clipping hides.
+
+    A unit whose waveform peaks over the rail whatever its trims misses the same
+    phases in every hold, so what they hide is one bias, turned alike in each hold:
+    the points' scatter cannot show it, and neither can a σ computed from it. So the
+    estimate is made again, on the points it chose, with every point's phasor of one
+    order moved by its ``hidden`` in each of four directions; the largest move is
+    kept. None when nothing clipped; inf where a move leaves nothing to estimate.
+    """
+    if not any(p.hidden for p in points):
+        return None
+    base = estimate(points)
+    worst = np.zeros_like(base)
+    for order in (1, 2):
+        for turn in _TURNS:
+            moved = [_moved(p, order, p.hidden * turn) if p.hidden else p for p in points]
+            try:
+                worst = np.maximum(worst, np.abs(estimate(moved) - base))
+            except (Unsupported, np.linalg.LinAlgError):
+                return np.full_like(base, math.inf)
+    return worst
+
+
+def _moved(point: TrimPoint, order: int, bias: complex) -> TrimPoint:
+    if order == 1:
+        return replace(point, h1=point.h1 + bias)
+    return replace(point, h2=point.h2 + bias)
+
+
+def _clipping_note(spread: NDArray[np.float64], sd: NDArray[np.float64]) -> list[str]:
+    """Said where what clipping may hide outweighs the noise in an estimate's σ."""
+    if not np.any(spread > sd):
+        return []
+    return [f"{CLIPPED_NOTE}: what the samples over the sensor's rail may hide could move the "
+            f"estimate by {', '.join(f'{v:.3g}' for v in spread)}; its σ carries it"]
 
 
 def paper_estimate(points: Sequence[TrimPoint]) -> TrimEstimate:
@@ -720,6 +778,18 @@ def coherent_estimate(points: Sequence[TrimPoint]) -> TrimEstimate:
         )
     t = _null(models)
     sd = np.sqrt(np.maximum(np.diag(_null_covariance(models)), 0.0))
+    terms = [m.terms for m in models]
+
+    def null_of(moved: Sequence[TrimPoint]) -> NDArray[np.float64]:
+        refitted = [_fit(moved, m.order, terms[i], len(points)) for i, m in enumerate(models)]
+        if any(m is None for m in refitted):
+            raise Unsupported("the moved points do not determine the maps")
+        return _null([m for m in refitted if m is not None])
+
+    spread = _clipping_spread(null_of, used)
+    if spread is not None:
+        warnings.extend(_clipping_note(spread, sd))
+        sd = np.hypot(sd, spread)
     gain_a, gain_b = _split_to_gains(float(t[2]), _gain_sum(points))
     for m in models:
         if m.quality.dof <= 0:

@@ -52,6 +52,9 @@ class Harmonics:
     # would give ``noise_variance * unit_variance``.
     noise_variance: float = math.nan
     unit_variance: NDArray[np.float64] | None = None
+    # What the fitted model puts where samples are missing (NaN in the signal), in their
+    # order: a clipped sample's part of each phasor is its true value minus this.
+    imputed: NDArray[np.float64] | None = None
 
     def h(self, order: int) -> complex:
         return complex(self.phasors[order - 1])
@@ -106,7 +109,7 @@ harmonic's frequency, is that harmonic over the window: fitted anyway, the two s
 signal into huge opposite parts (a development belt's phasor came out at 3e5 m/s²)."""
 
 
-def _separable(steady: NDArray[np.float64], decay: NDArray[np.float64]) -> NDArray[np.float64]:
+def _separable(steady: NDArray[np.float64], decay: NDArray[np.float64]) -> list[int]:
     """The columns of ``decay`` the window can tell from ``steady`` and from each other
     (``SEPARABLE``), taken in order: over a period or two, a slow ring and its sidebands
     are together nearly the harmonics themselves, though each alone is not."""
@@ -119,7 +122,7 @@ def _separable(steady: NDArray[np.float64], decay: NDArray[np.float64]) -> NDArr
         if size > SEPARABLE * float(np.linalg.norm(column)):
             kept.append(j)
             q = np.column_stack([q, apart / size])
-    return decay[:, kept]
+    return kept
 
 
 @dataclass(frozen=True)
@@ -469,7 +472,7 @@ def demodulate(
     what the pole's uncertainty costs them. ``sweeps`` (rad per sample², one per decay
     from the first, missing ones 0) are how fast each decay's frequency moves over the
     window: a ring on a spring that changes as the rotor turns is a chirp.
-    ``taper`` weighs the samples by a Hann window (``_hann``): content between the
+    ``taper`` weighs the samples by a Hann window (``hann``): content between the
     orders, a transient ringing at a mode's own frequency, then leaks into them through
     sidelobes falling as the cube of the distance instead of its first power, for
     about 1.5 times the variance (the variance returned is the weighted fit's).
@@ -485,13 +488,23 @@ def demodulate(
     ok = ~np.isnan(signal)
     used = int(ok.sum())
     x = _design(angle[ok], fitted)
+    # The same model where samples are missing: what the fit puts in their place.
+    gaps = _design(angle[~ok], fitted)
     if decays:
-        x = np.column_stack([x, _separable(x, _decay_design(
-            SampleClock.of(np.flatnonzero(ok), decay_from), decays, uncertain, sweeps))])
+        ring = _decay_design(SampleClock.of(np.flatnonzero(ok), decay_from), decays,
+                             uncertain, sweeps)
+        kept_ring = _separable(x, ring)
+        x = np.column_stack([x, ring[:, kept_ring]])
+        if gaps.shape[0]:
+            gaps = np.column_stack([gaps, _decay_design(
+                SampleClock.of(np.flatnonzero(~ok), decay_from), decays, uncertain,
+                sweeps)[:, kept_ring]])
+        else:
+            gaps = np.zeros((0, x.shape[1]))
     if used <= x.shape[1]:
         raise ValueError(f"{used} samples cannot determine {x.shape[1]} coefficients")
     y = signal[ok]
-    weight = _hann(signal.size)[ok] if taper else None
+    weight = hann(signal.size)[ok] if taper else None
     if weight is None:
         coef, *_ = np.linalg.lstsq(x, y, rcond=None)
     else:
@@ -537,10 +550,11 @@ def demodulate(
         samples_missing=int(signal.size - used),
         noise_variance=white,
         unit_variance=unit,
+        imputed=gaps @ coef,
     )
 
 
-def _hann(samples: int) -> NDArray[np.float64]:
+def hann(samples: int) -> NDArray[np.float64]:
     """sin² over the window, zero just outside its ends: no sample weighs nothing."""
     n = np.arange(samples, dtype=np.float64) + 0.5
     return np.asarray(np.sin(np.pi * n / samples) ** 2, dtype=np.float64)

@@ -17,6 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 from threadpoolctl import threadpool_limits
 
+from station.analysis.clipping import hidden_by_clipping
 from station.analysis.estimate import (
     Method,
     TrimEstimate,
@@ -28,6 +29,7 @@ from station.analysis.estimate import (
 from station.analysis.harmonics import (
     DEFAULT_ORDERS,
     Harmonics,
+    hann,
     period_phasors,
     phase_drift,
 )
@@ -50,7 +52,7 @@ from station.analysis.segments import (
     steady_segments,
 )
 from station.analysis.timeline import Timeline
-from station.core import Mapper
+from station.core import SATURATED_COUNTS, Mapper
 from station.errors import InputError
 
 
@@ -121,12 +123,17 @@ class Measured:
     reference_delay: float = 0.0
     rotor: complex | None = None  # e^{jθ} of the rotor's angle at the hold's middle
     halves: tuple[Harmonics, Harmonics] | None = None  # ``AnalysisOptions.halves``
+    # The most the samples over the sensor's rail could move any phasor (m/s²,
+    # ``hidden_by_clipping``): an uncertainty no period-to-period scatter shows, because
+    # the same phases are missing in every period.
+    hidden: float = 0.0
 
     def point(self, clock: ClockPhase | None = None) -> TrimPoint:
         """The hold's phasors, on ``clock`` where given: a run's first holds are measured
         before the holds after them have timed the clock, and each phasor of order k
         turns by k·dθ/dn per sample of delay (a constant delay is a turn, which a hold
-        cannot tell from its own phase: only the run's clock can)."""
+        cannot tell from its own phase: only the run's clock can). What clipping may
+        hide adds to each phasor's variance as a bias of unknown sign would."""
         h = self.harmonics
         h1, h2 = h.h(1), h.h(2)
         if clock is not None and clock.rate:
@@ -134,7 +141,9 @@ class Measured:
             late = float(_on_clock(clock, seg, self.first_sample, self.wrap_at).mean())
             turn = -seg.angle_per_sample * (late - self.reference_delay)
             h1, h2 = h1 * cmath.exp(1j * turn), h2 * cmath.exp(2j * turn)
-        return TrimPoint(self.segment.trims, h1, h.var(1), h2, h.var(2), self.rotor)
+        hidden = self.hidden ** 2
+        return TrimPoint(self.segment.trims, h1, h.var(1) + hidden, h2, h.var(2) + hidden,
+                         self.rotor, self.hidden)
 
 
 def _on_clock(clock: ClockPhase, seg: Segment, first_sample: int, wrap_at: int | None
@@ -261,13 +270,23 @@ def measure(
         halves = (seg.halves(window, options.orders, white_noise=options.white_noise,
                              delays=delays, taper=options.taper) if options.halves else None)
         saturated = int(np.count_nonzero(timeline.saturated[seg.start : seg.stop]))
+        counts = timeline.accel_counts[seg.start : seg.stop, meta.tangential_axis.column]
+        at_rail = ((np.abs(counts) >= SATURATED_COUNTS)
+                   & timeline.sensor_valid[seg.start : seg.stop])
+        model = np.full(window.size, np.nan)
+        if h.imputed is not None:
+            model[np.isnan(window)] = h.imputed
+        hidden = hidden_by_clipping(window, counts.astype(np.int64), at_rail,
+                                    SATURATED_COUNTS * meta.sensor_lsb_mps2, imputed=model,
+                                    weights=hann(window.size) if options.taper else None)
         rotor = None
         if timeline.drive_reported:
             middle = seg.position0 + seg.microsteps_per_sample * (seg.samples - 1) / 2.0
             rotor = cmath.exp(1j * float(mechanical_angle(
                 np.array([middle]), meta.microsteps_per_fullstep, meta.rotor_teeth)[0]))
         out.append(Measured(seg, h, saturated, seen, rate + error, own, options.first_sample,
-                            0.0 if delays is None else float(delays.mean()), rotor, halves))
+                            0.0 if delays is None else float(delays.mean()), rotor, halves,
+                            hidden))
     return out, rejected
 
 

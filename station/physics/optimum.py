@@ -82,6 +82,25 @@ def steady_harmonics(
     the transients have died out. This is what a perfect station would
     demodulate at constant speed with these trims.
     """
+    acc, angle = steady_reading(unit, trims, amplitude_mA=amplitude_mA,
+                                electrical_hz=electrical_hz, sync_period_s=sync_period_s,
+                                periods=periods, substeps=substeps)
+    return harmonic_phasors(acc[:, unit.sensor.tangential_axis.column], angle, orders)
+
+
+def steady_reading(
+    unit: UnitParams,
+    trims: Trims,
+    *,
+    amplitude_mA: float = 1000.0,
+    electrical_hz: float = 20.0,
+    sync_period_s: float = 0.001,
+    periods: int = 4,
+    substeps: int = 8,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The sensor's steady reading, (samples, 3) in m/s² without noise or range, and the
+    drive's electrical angle at each sample: what every SYNC would give over ``periods``
+    whole periods once the transients have died out."""
     if electrical_hz <= 0 or periods < 1:
         raise ValueError("need a positive electrical frequency and at least one period")
     plant = Plant(_quiet(unit), sync_period_s=sync_period_s, substeps=substeps)
@@ -93,16 +112,15 @@ def steady_harmonics(
     plant.place_on_trajectory(
         DriveCommand(True, amplitude_mA, trims, 0.0, velocity, 0.0, m)
     )
-    axis = unit.sensor.tangential_axis.column
-    acc = np.empty(measured)
+    acc: NDArray[np.float64] = np.empty((measured, 3))
     for n in range(settle + measured):
         plant.advance(DriveCommand(True, amplitude_mA, trims, velocity * n * sync_period_s,
                                    velocity, 0.0, m))
         if n >= settle:
-            acc[n - settle] = plant.sensor_reading_mps2[axis]
-    ends = np.arange(settle + 1, settle + measured + 1) * sync_period_s * velocity
-    angle = 2.0 * math.pi * ends / (4.0 * m)
-    return harmonic_phasors(acc, angle, orders)
+            acc[n - settle] = plant.sensor_reading_mps2
+    ends = np.arange(settle + 1, settle + measured + 1, dtype=np.float64)
+    angle: NDArray[np.float64] = 2.0 * math.pi * ends * sync_period_s * velocity / (4.0 * m)
+    return acc, angle
 
 
 def _whole_period_samples(samples_per_period: float, periods: int) -> int:

@@ -18,6 +18,7 @@ import pytest
 from numpy.typing import NDArray
 
 from station.analysis.estimate import (
+    CLIPPED_NOTE,
     CORRECTION_SIGMAS,
     SPLIT_SPREAD,
     Method,
@@ -408,3 +409,45 @@ def test_a_sweep_that_returns_to_nominal_still_determines_its_parabola() -> None
     assert len(set(np.asarray(fit.x)[np.asarray(fit.used)])) >= 3
     assert abs(fit.vertex - vertex) < 30.0, fit.vertex
     assert any("fit worse than the noise" in w for w in warnings), warnings
+
+
+# ------------------------------------------------------------------ clipping
+
+
+def _clipped(pts: Sequence[TrimPoint], hidden: float) -> list[TrimPoint]:
+    """The points as holds whose samples over the rail may hide ``hidden`` of each phasor
+    (its variance included, as ``Measured.point`` gives them)."""
+    return [replace(p, h1_var=p.h1_var + hidden**2, h2_var=p.h2_var + hidden**2, hidden=hidden)
+            for p in pts]
+
+
+def test_a_bias_every_clipped_hold_shares_is_carried_by_the_coherent_sigma() -> None:
+    # Seed 1742693704: the same phases over the rail in every hold moved every H1 alike, by
+    # 0.42 m/s², and the null 15 mA, with a σ of 1 mA from the holds' scatter.
+    hidden = 0.05
+    clean = points(cross_design(), seed=4)
+    plain, clipped = coherent_estimate(clean), coherent_estimate(_clipped(clean, hidden))
+    assert not any(CLIPPED_NOTE in w for w in plain.warnings)
+    assert any(w.startswith(f"{CLIPPED_NOTE}: ") for w in clipped.warnings)
+    biased = coherent_estimate([replace(p, h1=p.h1 + hidden) for p in clean])
+    moved = np.abs(errors(biased.trims) - errors(plain.trims))
+    sigma = clipped.sigma
+    assert moved[0] > 5 * plain.sigma.offset_a_mA  # the bias is no noise the fit could see
+    assert sigma.offset_a_mA >= moved[0] and sigma.offset_b_mA >= moved[1]
+    assert sigma.gain_a >= moved[2]
+
+
+def test_holds_that_did_not_clip_leave_the_estimate_as_it_was() -> None:
+    clean = points(cross_design(), seed=5)
+    assert coherent_estimate(_clipped(clean, 0.0)) == coherent_estimate(clean)
+
+
+def test_a_parabolas_vertex_sigma_carries_what_clipping_may_hide() -> None:
+    design = cross_design(a_at=OPTIMUM[0], split_at=(OPTIMUM[0], OPTIMUM[1]))
+    clean = points(design, seed=3)
+    plain, clipped = paper_estimate(clean), paper_estimate(_clipped(clean, 0.3))
+    # Every hold weighed alike by what it may hide: near the same vertices.
+    moved = np.abs(errors(clipped.trims) - errors(plain.trims))
+    assert moved[0] < 3 * plain.sigma.offset_a_mA and moved[1] < 3 * plain.sigma.offset_b_mA
+    assert clipped.sigma.offset_a_mA > 3 * plain.sigma.offset_a_mA
+    assert any(f"{TrimAxis.OFFSET_A.value}: {CLIPPED_NOTE}: " in w for w in clipped.warnings)
