@@ -12,7 +12,12 @@ paper's magnitude method in the recipe's rounds), side by side in the same run.
 
 A unit should pass when a perfect station would pass it (``plant_verdict``): the plant's
 optimum (``optimal_trims``, every effect it has included) lies within the recipe's trim
-bounds and leaves a ripple within the recipe's limits. One that does not pass is a false
+bounds and leaves a ripple within the recipe's limits, and the sensor's steady reading there
+stays within its full scale (a waveform over the rail at the same phase of every period
+hides part of each harmonic from any station: such a unit is counted as unverifiable and
+must not pass). An eccentric rotor's optimum and ripple are those over a whole revolution
+(``revolution_periods``): the part of each harmonic no rotor angle changes, the only part
+the trims can null. One that does not pass is a false
 fail, and a unit that should not pass but does is a false pass; one that passed although
 the plant's own steady ripple at the trims it shipped with is over a limit is counted
 too (its verification read low: a transient's leakage, or a correction made on one). A

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+import math
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -43,6 +44,7 @@ from station.analysis.estimate import (
     coherent_estimate,
     correction_from,
     fit_parabola,
+    widest_explained,
 )
 from station.analysis.phasor_clock import clock_from_phasors
 from station.analysis.pipeline import AnalysisOptions, Measured, measure, still_settling
@@ -79,6 +81,7 @@ from station.limits import (
     estimate_checks,
     ripple_checks,
     summary,
+    trims_within,
     unsupported,
     verdict_for,
 )
@@ -683,30 +686,71 @@ class _Calibration:
         estimate: TrimEstimate | None = None
         rounds = list(zip(sweep.offset_steps_mA, sweep.gain_steps, strict=True))
         for number, (offset_step, gain_step) in enumerate(rounds, start=1):
-            design = star(centre, offset_step, gain_step, rated)
-            # The centre of the first round is the baseline, measured already; a later
-            # round's is not measured at all: its three ± pairs fix the affine maps' value
-            # there with six times a single point's weight. On 37 drawn units, dropping
-            # it cut 0.6 s of motion and moved no estimate's error beyond its scatter.
-            # A point left out for clipping would clip again.
-            todo = [p for p in design if (p != centre or (number == 1 and not baseline))
-                    and p not in self.left_out]
             self.observer.step(
                 Step.SWEEP,
                 f"round {number}/{len(rounds)}: ±{offset_step} mA, ±{gain_step} around "
                 f"{_trims_text(centre)}",
             )
-            held.extend(self._measure(motion, todo, Phase.SWEEP_STAR, centre=centre))
-            # Every hold so far on the clock as the run knows it now: the first round's
-            # holds were demodulated before the later ones had timed it.
-            clock = self._clock_phase(held)
-            self.clock_used = clock
-            points = [m.point(clock) for m in held]
-            self.observer.step(Step.ESTIMATE, f"round {number}: {len(points)} points")
-            estimate = coherent_estimate(points)
+            estimate = self._star_round(motion, centre, (offset_step, gain_step), held,
+                                        with_centre=number == 1 and not baseline)
             centre = within_drive_range(estimate.trims, rated)
         assert estimate is not None  # the recipe guarantees at least one round
+        for number in range(1, sweep.sigma_rounds + 1):
+            short = self._short_of_information(estimate, sweep.sigma_rounds - number + 1)
+            widest = widest_explained(estimate, [m.point(self.clock_used) for m in held],
+                                      rounds)
+            if short is None or widest is None:
+                break
+            offset_step, gain_step = int(widest[0]), int(widest[1])
+            self.run_record.warnings.append(
+                f"{Phase.SWEEP_STAR.value}: {short} after {len(rounds) + number - 1} rounds: "
+                f"one more of ±{offset_step} mA, ±{gain_step} around {_trims_text(centre)}")
+            self.observer.step(Step.SWEEP, f"σ round {number}/{sweep.sigma_rounds}: ±"
+                               f"{offset_step} mA, ±{gain_step} around {_trims_text(centre)}")
+            estimate = self._star_round(motion, centre, (offset_step, gain_step), held,
+                                        with_centre=False)
+            centre = within_drive_range(estimate.trims, rated)
         return estimate
+
+    def _star_round(self, motion: Motion, centre: Trims, steps: tuple[int, int],
+                    held: list[Measured], *, with_centre: bool) -> TrimEstimate:
+        """One star around ``centre``, measured into ``held``; the estimate from them all.
+
+        A round's centre is measured only where nothing was there yet (the first
+        round's is the baseline): a later round's three ± pairs fix the affine maps'
+        value there with six times a single point's weight. On 37 drawn units,
+        dropping it cut 0.6 s of motion and moved no estimate's error beyond its
+        scatter. A point left out for clipping would clip again.
+        """
+        design = star(centre, steps[0], steps[1], self.recipe.product.rated_current_mA)
+        todo = [p for p in design if (p != centre or with_centre) and p not in self.left_out]
+        held.extend(self._measure(motion, todo, Phase.SWEEP_STAR, centre=centre))
+        # Every hold so far on the clock as the run knows it now: the first round's
+        # holds were demodulated before the later ones had timed it.
+        clock = self._clock_phase(held)
+        self.clock_used = clock
+        points = [m.point(clock) for m in held]
+        self.observer.step(Step.ESTIMATE, f"{len(points)} points")
+        return coherent_estimate(points)
+
+    def _short_of_information(self, estimate: TrimEstimate, rounds_left: int) -> str | None:
+        """What σ is over its limit, where the rounds left could bring it within: each
+        widest star adds about what the first round knew, and σ falls as the square root
+        of it. None where σ is within its limits, or so far over them (a ruined estimate,
+        a unit whose clipping hides its harmonics) that more of the same cannot help.
+        """
+        limits, sigma = self.recipe.limits, estimate.sigma
+        offset = max(sigma.offset_a_mA, sigma.offset_b_mA)
+        gain = max(sigma.gain_a, sigma.gain_b)
+        over = [f"{name} σ {value:.3g} (limit {limit:g})" for name, value, limit in (
+            ("offset", offset, limits.max_offset_sigma_mA), ("gain", gain, limits.max_gain_sigma))
+            if value > limit]
+        reach = math.sqrt(1.0 + rounds_left)
+        if (not over or not offset <= reach * limits.max_offset_sigma_mA
+                or not gain <= reach * limits.max_gain_sigma
+                or not trims_within(limits, estimate.trims.rounded())):
+            return None
+        return " and ".join(over)
 
     def _write_and_store(self, trims: Trims) -> None:
         drive, run = self.drive, self.run_record

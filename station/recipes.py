@@ -40,6 +40,7 @@ RECIPE_SUFFIX: Final = ".toml"
 # constant (the paper's step 3, I21 = 2I - I11).
 GAIN_SUM: Final = 2 * GAIN_UNITY
 MAX_COHERENT_ROUNDS: Final = 5
+MAX_SIGMA_ROUNDS: Final = 3
 MAX_GAIN_STEP: Final = 5000
 
 _NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
@@ -110,6 +111,10 @@ class CoherentSweep:
 
     offset_steps_mA: tuple[int, ...]
     gain_steps: tuple[int, ...]
+    # Rounds of the widest star added, around the latest estimate, while the estimate's
+    # σ is over the recipe's limit: a unit that moves the load little per mA (a belt)
+    # is short of information, and the widest steps give the most per hold.
+    sigma_rounds: int = 0
 
 
 @dataclass(frozen=True)
@@ -302,6 +307,7 @@ def _read_coherent_sweep(t: TomlTable, rated: int | None) -> CoherentSweep:
         offset_steps_mA=_read_rounds(t, "offset_steps_mA", half,
                                      "at most half of product.rated_current_mA"),
         gain_steps=_read_rounds(t, "gain_steps", MAX_GAIN_STEP, ""),
+        sigma_rounds=t.integer("sigma_rounds", 0, MAX_SIGMA_ROUNDS) if t.has("sigma_rounds") else 0,
     )
     rounds_a, rounds_b = len(sweep.offset_steps_mA), len(sweep.gain_steps)
     if t.valid("offset_steps_mA", "gain_steps") and rounds_a and rounds_b and rounds_a != rounds_b:

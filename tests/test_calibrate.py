@@ -430,6 +430,26 @@ def test_a_unit_too_rough_for_the_sensor_fails_saying_so_with_its_trims_untouche
     assert kept.trims_before == Trims()
 
 
+@pytest.mark.parametrize("rounds", [2, 0])
+def test_a_unit_short_of_information_is_measured_until_its_sigma_is_within_the_limit(
+    db: Path, tmp_path: Path, rounds: int,
+) -> None:
+    # Population seed 1874937362: a belt whose maps hold over its 7 least-shaken points of
+    # 25; after three rounds its offsets' σ was 4.4 mA against a limit of 3.
+    recipe = _recipe_variant(tmp_path, "sigma", sigma_rounds=rounds)
+    station, serial = _drawn_station(db, 1874937362)
+    run = calibrate(station, serial, str(recipe)).run
+    added = [w for w in run.warnings if "after 3 rounds: one more of" in w]
+    if not rounds:
+        assert run.verdict is Verdict.FAIL and not added
+        assert {c.name for c in run.failed_limits} == {LimitName.OFFSET_SIGMA}
+        return
+    assert run.verdict is Verdict.PASS, run.reason
+    assert added and added[0].startswith("sweep_star: offset σ ")
+    assert run.uncertainty is not None and run.uncertainty.offset_a_mA <= 3.0
+    _assert_on_the_plants_optimum(run, 1874937362)
+
+
 def test_a_unit_whose_ripple_peaks_over_the_rail_at_every_trim_fails_saying_so(db: Path) -> None:
     # Population seed 1742693704: flux harmonics and current distortion peak over ±16 g at
     # the same phase of every period whatever the trims. The fit never saw those phases:

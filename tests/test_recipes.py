@@ -111,8 +111,9 @@ def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> Non
     recipe = load_recipe(DEFAULT_RECIPE)
     reference = load_recipe("paper")
     assert recipe.method is RecipeMethod.COHERENT
+    # Two more rounds at most for a unit whose σ is over its limit after three.
     assert recipe.sweep == CoherentSweep(offset_steps_mA=(100, 30, 10),
-                                         gain_steps=(1000, 300, 100))
+                                         gain_steps=(1000, 300, 100), sigma_rounds=2)
     assert (recipe.motion.dwell_periods, recipe.motion.sensor_range_g) == (4, 16)
     assert recipe.hold_periods() == 6
     # Short holds for the sweep; the verification settles briefly and goes on measuring
@@ -716,3 +717,20 @@ def test_file_that_is_not_utf8_is_refused(tmp_path: Path) -> None:
 
 def test_recipe_format_constant_is_what_shipped_recipes_declare() -> None:
     assert all(shipped_data(name)["format"] == RECIPE_FORMAT for name in available_recipes())
+
+
+def test_rounds_for_sigma_are_added_only_where_the_recipe_allows() -> None:
+    data = coherent()
+    data["sweep"].pop("sigma_rounds", None)
+    # A recipe written before the key measures its own rounds and no more.
+    assert parse_recipe(to_toml(data), source=SOURCE).sweep == CoherentSweep(
+        tuple(data["sweep"]["offset_steps_mA"]), tuple(data["sweep"]["gain_steps"]))
+    data["sweep"]["sigma_rounds"] = 3
+    sweep = parse_recipe(to_toml(data), source=SOURCE).sweep
+    assert isinstance(sweep, CoherentSweep) and sweep.sigma_rounds == 3
+    for wrong in (-1, 4, 1.5):
+        data["sweep"]["sigma_rounds"] = wrong
+        assert only_problem(data).startswith("sweep.sigma_rounds: ")
+    data = paper()
+    data["sweep"]["sigma_rounds"] = 1  # the paper's sweeps have no rounds to add to
+    assert only_problem(data).startswith("sweep.sigma_rounds: ")

@@ -821,6 +821,29 @@ def coherent_estimate(points: Sequence[TrimPoint]) -> TrimEstimate:
     )
 
 
+def widest_explained(estimate: TrimEstimate, points: Sequence[TrimPoint],
+                     steps: Sequence[tuple[float, float]]) -> tuple[float, float] | None:
+    """The widest of ``steps`` (offset mA, split) whose star around the estimate the
+    maps would still explain: its points no more shaken, by the maps' slopes, than the
+    most shaken of the points the maps were fitted over. Wider steps tell the slopes
+    more per hold, but a belt near resonance bends: its maps hold over its 7
+    least-shaken points of 25, and a round of ±100 mA added there is left out of them
+    (seed 1874937362, σ 4.4 mA then 6.5). None without phasor maps, and where even
+    the narrowest would be more shaken."""
+    fits = {fit.order: fit for fit in estimate.affine}
+    if 1 not in fits or 2 not in fits or not points:
+        return None
+    used = min(fit.quality.points_used for fit in fits.values())
+    ceiling = sorted(p.ripple for p in points)[min(used, len(points)) - 1]
+    j1, j2 = (_trim_slopes(fits[k].terms, fits[k].coefficients) for k in (1, 2))
+    for offset, split in sorted(steps, reverse=True):
+        reach = max(math.hypot(abs(j1[axis] * step), abs(j2[axis] * step))
+                    for axis, step in ((0, offset), (1, offset), (2, split)))
+        if reach <= ceiling:
+            return offset, split
+    return None
+
+
 @dataclass(frozen=True)
 class Correction:
     """Where the estimate's maps, anchored on one more hold, put the null.

@@ -72,7 +72,7 @@ def steady_harmonics(
     electrical_hz: float = 20.0,
     sync_period_s: float = 0.001,
     orders: Sequence[int] = (1, 2),
-    periods: int = 4,
+    periods: int | None = None,
     substeps: int = 8,
 ) -> NDArray[np.complex128]:
     """Steady-state harmonics of the sensor's tangential reading (m/s², noise-free).
@@ -81,11 +81,37 @@ def steady_harmonics(
     angle x_u at each SYNC, over ``periods`` whole electrical periods after
     the transients have died out. This is what a perfect station would
     demodulate at constant speed with these trims.
+
+    By default over four periods, or over a whole mechanical revolution where the
+    rotor is eccentric (``revolution_periods``).
     """
+    if periods is None:
+        periods = revolution_periods(unit)
     acc, angle = steady_reading(unit, trims, amplitude_mA=amplitude_mA,
                                 electrical_hz=electrical_hz, sync_period_s=sync_period_s,
                                 periods=periods, substeps=substeps)
     return harmonic_phasors(acc[:, unit.sensor.tangential_axis.column], angle, orders)
+
+
+STEADY_PERIODS = 4
+"""Electrical periods a steady state is measured over where one period is like the next."""
+
+
+def revolution_periods(unit: UnitParams) -> int:
+    """The periods over which a steady state repeats: one, except for an eccentric rotor.
+
+    Its airgap, and its unbalance, turn with the rotor: the torque ripple of every
+    order is modulated once per revolution, and over a short window the sidebands at
+    f ± f_rotor are part of each harmonic, by the rotor's angle. A development disk
+    read H1 0.018 to 0.197 m/s² at one set of trims depending on where its rotor was,
+    and its "optimum" over four periods at one angle lay 13 mA from the null of what
+    the trims can change (seed 1136781479). Over a whole revolution the sidebands
+    average out: what is left is the part no rotor angle changes, the only part the
+    trims can null, and what the station's maps (with their rotor term) estimate.
+    """
+    if unit.motor.eccentricity is None:
+        return STEADY_PERIODS
+    return unit.rotor_teeth
 
 
 def steady_reading(
@@ -95,12 +121,14 @@ def steady_reading(
     amplitude_mA: float = 1000.0,
     electrical_hz: float = 20.0,
     sync_period_s: float = 0.001,
-    periods: int = 4,
+    periods: int | None = None,
     substeps: int = 8,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """The sensor's steady reading, (samples, 3) in m/s² without noise or range, and the
     drive's electrical angle at each sample: what every SYNC would give over ``periods``
-    whole periods once the transients have died out."""
+    whole periods once the transients have died out (by default as ``steady_harmonics``)."""
+    if periods is None:
+        periods = revolution_periods(unit)
     if electrical_hz <= 0 or periods < 1:
         raise ValueError("need a positive electrical frequency and at least one period")
     plant = Plant(_quiet(unit), sync_period_s=sync_period_s, substeps=substeps)

@@ -9,6 +9,7 @@ estimate can be judged against it.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import replace
@@ -29,6 +30,7 @@ from station.analysis.estimate import (
     correction_from,
     fit_parabola,
     paper_estimate,
+    widest_explained,
 )
 from station.core import GAIN_UNITY, Trims
 
@@ -451,3 +453,31 @@ def test_a_parabolas_vertex_sigma_carries_what_clipping_may_hide() -> None:
     assert moved[0] < 3 * plain.sigma.offset_a_mA and moved[1] < 3 * plain.sigma.offset_b_mA
     assert clipped.sigma.offset_a_mA > 3 * plain.sigma.offset_a_mA
     assert any(f"{TrimAxis.OFFSET_A.value}: {CLIPPED_NOTE}: " in w for w in clipped.warnings)
+
+
+# ------------------------------------------------------------------ rounds for σ
+
+STEPS = [(100.0, 1000.0), (30.0, 300.0), (10.0, 100.0)]
+
+
+def test_a_unit_whose_maps_hold_everywhere_gets_the_widest_star() -> None:
+    pts = points(cross_design(), seed=6)
+    assert widest_explained(coherent_estimate(pts), pts, STEPS) == (100.0, 1000.0)
+
+
+def test_a_unit_that_bends_gets_the_widest_star_its_maps_still_explain() -> None:
+    # Beyond 30 mA of offset error the response bends: the maps hold over the points
+    # nearer the null, and a star of ±100 mA there would be left out of them.
+    response = _saturating(limit=30 * abs(J1[0]))
+    design = [OPTIMUM + np.array([a, b, s]) for a, b, s in itertools.product(
+        (-60.0, -20.0, 0.0, 20.0, 60.0), (-20.0, 0.0, 20.0), (-200.0, 0.0, 200.0))]
+    pts = points(design, seed=7, response=response)
+    estimate = coherent_estimate(pts)
+    assert estimate.affine[0].quality.points_used < len(pts)
+    assert widest_explained(estimate, pts, STEPS) == (30.0, 300.0)
+
+
+def test_an_estimate_without_phasor_maps_asks_for_no_star() -> None:
+    design = cross_design(a_at=OPTIMUM[0], split_at=(OPTIMUM[0], OPTIMUM[1]))
+    pts = points(design, seed=3)
+    assert widest_explained(paper_estimate(pts), pts, STEPS) is None

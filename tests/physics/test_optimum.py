@@ -10,8 +10,16 @@ import numpy as np
 import pytest
 
 from station.core import GAIN_UNITY, Effect, LoadKind, Trims
+from station.dsp import harmonic_phasors
 from station.physics.motor import torque
-from station.physics.optimum import amplifier_optimum, optimal_trims, steady_harmonics
+from station.physics.optimum import (
+    STEADY_PERIODS,
+    amplifier_optimum,
+    optimal_trims,
+    revolution_periods,
+    steady_harmonics,
+    steady_reading,
+)
 from station.physics.params import UnitParams, derive_unit
 from station.physics.plant import DriveCommand, Plant
 from station.sim.population import draw_line_unit
@@ -102,14 +110,16 @@ def test_plant_h1_null_matches_the_torque_model_null() -> None:
 
 @pytest.mark.parametrize("effect", [e for e in Effect if e is not Effect.SENSOR_CLOCK_DRIFT])
 def test_each_effect_changes_the_ripple_measurably(effect: Effect) -> None:
-    """Some harmonic moves by more than ten noise σ of a 10-s record's demodulation."""
+    """Some harmonic moves by more than ten noise σ of a 10-s record's demodulation, as
+    a hold of four periods sees it (an eccentric rotor's sidebands, a harmonic there,
+    average out over a revolution)."""
     plain = derive_unit("SN123", effects=())
     with_effect = derive_unit("SN123", effects=[effect])
     with_effect = replace(with_effect, sensor=replace(with_effect.sensor, sample_phase=0.5))
     trims = Trims(0.0, 0.0, 10500.0, 9500.0)
     orders = (1, 2, 3, 4)
-    before = steady_harmonics(plain, trims, orders=orders)
-    after = steady_harmonics(with_effect, trims, orders=orders)
+    before = steady_harmonics(plain, trims, orders=orders, periods=STEADY_PERIODS)
+    after = steady_harmonics(with_effect, trims, orders=orders, periods=STEADY_PERIODS)
     floor = plain.sensor.noise_sigma_mps2() * math.sqrt(2 / RECORD_SAMPLES)
     assert np.max(np.abs(after - before)) > 10 * floor
 
@@ -226,3 +236,21 @@ def test_a_rough_unit_far_from_the_nominal_trims_still_converges(seed: int) -> N
     assert abs(found.offset_a_mA) > 100 and abs(found.gain_a - GAIN_UNITY) > 500
     h = steady_harmonics(unit, found)
     assert abs(h[0]) < 1e-3
+
+
+def test_an_eccentric_rotors_optimum_nulls_what_no_rotor_angle_changes() -> None:
+    # Its airgap turns with it: over four periods a harmonic holds sidebands at the rotor's
+    # frequency, by where the rotor is; over a revolution they average out, and what is
+    # left is what the trims can null (population seed 1136781479: 13 mA between the two).
+    unit = derive_unit("SN123", effects=[Effect.ROTOR_ECCENTRICITY])
+    assert revolution_periods(unit) == unit.rotor_teeth
+    assert revolution_periods(derive_unit("SN123", effects=())) == STEADY_PERIODS
+    best = optimal_trims(unit)
+    reading, angle = steady_reading(unit, best)
+    tangential = reading[:, unit.sensor.tangential_axis.column]
+    chunk = 4 * 50  # four periods at 20 Hz and 1 kHz
+    parts = [abs(harmonic_phasors(tangential[i:i + chunk], angle[i:i + chunk], (1,))[0])
+             for i in range(0, tangential.size, chunk)]
+    assert len(parts) == unit.rotor_teeth // 4 + 1
+    assert abs(steady_harmonics(unit, best)[0]) < 1e-3
+    assert max(parts) > 20 * abs(steady_harmonics(unit, best)[0])
