@@ -697,9 +697,11 @@ class _Calibration:
         assert estimate is not None  # the recipe guarantees at least one round
         for number in range(1, sweep.sigma_rounds + 1):
             short = self._short_of_information(estimate, sweep.sigma_rounds - number + 1)
+            if short is None:
+                break
             widest = widest_explained(estimate, [m.point(self.clock_used) for m in held],
                                       rounds)
-            if short is None or widest is None:
+            if widest is None:
                 break
             offset_step, gain_step = int(widest[0]), int(widest[1])
             self.run_record.warnings.append(
