@@ -10,10 +10,13 @@ phasor by up to 2δ/n. A development disk whose flux harmonics peaked 10 m/s² o
 
 What is over the rail cannot be measured, but a smooth peak that crosses the rail
 with slope s and stays over it for w samples rises about s·w/4 above it (a
-parabola's cap). The slope is what the samples beside the run show. So each run of
-clipped samples may hide up to that much per sample, and the phasors carry the sum
-as an uncertainty of their own: the estimate weighs a hold by it and the
-verification judges the ripple with it.
+parabola's cap). The slope is what the samples beside the run show. So each clipped
+sample lay somewhere between the rail and that cap, and may differ from what the fit
+put there by as much as the farther of the two: on a synthetic hold with content
+beyond the fitted orders, 4 % clipped, H1 moved by 14.4 m/s², and the bound is 23.2
+(9.0 without the fit's own stand-in, too little). The phasors carry the sum as an
+uncertainty of their own: the estimate weighs a hold by it and, as one bias every
+clipped hold shares, carries it in its σ; the verification judges the ripple with it.
 """
 
 from __future__ import annotations
