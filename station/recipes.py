@@ -111,9 +111,10 @@ class CoherentSweep:
 
     offset_steps_mA: tuple[int, ...]
     gain_steps: tuple[int, ...]
-    # Rounds of the widest star added, around the latest estimate, while the estimate's
-    # σ is over the recipe's limit: a unit that moves the load little per mA (a belt)
-    # is short of information, and the widest steps give the most per hold.
+    # Rounds added around the latest estimate while its σ is over the recipe's limit:
+    # a unit that moves the load little per mA (a belt) is short of information. Each
+    # is the widest of the rounds' stars that the maps still explain, which tells the
+    # slopes most per hold.
     sigma_rounds: int = 0
 
 

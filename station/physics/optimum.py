@@ -85,8 +85,6 @@ def steady_harmonics(
     By default over four periods, or over a whole mechanical revolution where the
     rotor is eccentric (``revolution_periods``).
     """
-    if periods is None:
-        periods = revolution_periods(unit)
     acc, angle = steady_reading(unit, trims, amplitude_mA=amplitude_mA,
                                 electrical_hz=electrical_hz, sync_period_s=sync_period_s,
                                 periods=periods, substeps=substeps)
