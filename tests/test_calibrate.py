@@ -467,6 +467,21 @@ def test_a_unit_whose_ripple_peaks_over_the_rail_at_every_trim_fails_saying_so(d
     assert not run.trims_stored and run.trims_after is None
 
 
+def test_a_verification_between_two_of_the_clock_s_wraps_reads_the_unit_as_it_is(
+    db: Path,
+) -> None:
+    # Population seed 1268081785: a detent disk whose sensor runs 214 ppm fast. The
+    # run's clock, anchored on the one wrap a sweep hold placed, put the next wrap 117
+    # samples into the verification, where the waveform has none: the unit, stored 0.1
+    # mA from its optimum, read H1 0.60 and H2 0.74 m/s² after and failed both limits.
+    station, serial = _drawn_station(db, 1268081785)
+    run = calibrate(station, serial).run
+    assert run.verdict is Verdict.PASS, run.reason
+    assert run.fit is not None and run.fit["sensor_clock"]["wraps"] >= 1
+    assert run.after is not None and run.after.h1 < 0.08 and run.after.h2 < 0.25
+    _assert_on_the_plants_optimum(run, 1268081785)
+
+
 def _clipped(run: Run, range_g: int = 16) -> tuple[int, int]:
     """Samples at full scale as the limit table shows them (a count judged by no limit),
     and as the warnings say them."""

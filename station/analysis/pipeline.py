@@ -117,6 +117,7 @@ class Measured:
     clock_observed: RateObservation | None = None
     clock_rate: float = 0.0
     wrap_at: int | None = None
+    wrap_searched: bool = False  # a wrap was looked for in the hold (none found: none there)
     # Where the timeline lay in the run, and the mean delay (samples) the harmonics were
     # demodulated at: what ``point`` needs to put them on a clock known better later.
     first_sample: int = 0
@@ -138,7 +139,8 @@ class Measured:
         h1, h2 = h.h(1), h.h(2)
         if clock is not None and clock.rate:
             seg = self.segment
-            late = float(_on_clock(clock, seg, self.first_sample, self.wrap_at).mean())
+            late = float(_on_clock(clock, seg, self.first_sample, self.wrap_at,
+                                   self.wrap_searched).mean())
             turn = -seg.angle_per_sample * (late - self.reference_delay)
             h1, h2 = h1 * cmath.exp(1j * turn), h2 * cmath.exp(2j * turn)
         hidden = self.hidden ** 2
@@ -146,13 +148,14 @@ class Measured:
                          self.rotor, self.hidden)
 
 
-def _on_clock(clock: ClockPhase, seg: Segment, first_sample: int, wrap_at: int | None
-              ) -> NDArray[np.float64]:
+def _on_clock(clock: ClockPhase, seg: Segment, first_sample: int, wrap_at: int | None,
+              searched: bool) -> NDArray[np.float64]:
     """Each sample's delay in a segment of a timeline that began at the run's sample
     ``first_sample``, on the run's ``clock``; ``wrap_at`` the wrap the hold placed itself
     (timeline index)."""
     index = first_sample + seg.start + np.arange(seg.samples, dtype=np.float64)
-    return clock.delays(index, None if wrap_at is None else first_sample + wrap_at)
+    return clock.delays(index, None if wrap_at is None else first_sample + wrap_at,
+                        searched=searched)
 
 
 @dataclass(frozen=True)
@@ -255,12 +258,14 @@ def measure(
              if rate and timeline.drive_reported else None)
     meta = timeline.metadata
     out: list[Measured] = []
-    for seg, seen, timing, error in zip(segments, observed, timings, errors, strict=True):
+    for seg, seen, timing, error, cut in zip(segments, observed, timings, errors, clipped,
+                                             strict=True):
         window = signal[seg.start : seg.stop]
         delays = None if timing is None else timing.delays
         own = None if timing is None or timing.wrap_at is None else seg.start + timing.wrap_at
+        searched = timing is not None and not cut and wrap_sign(rate + error) != 0.0
         if phase is not None:
-            delays = _on_clock(phase, seg, options.first_sample, own)
+            delays = _on_clock(phase, seg, options.first_sample, own, searched)
         try:
             h = seg.harmonics(window, options.orders, white_noise=options.white_noise,
                               delays=delays, taper=options.taper)
@@ -284,7 +289,8 @@ def measure(
             middle = seg.position0 + seg.microsteps_per_sample * (seg.samples - 1) / 2.0
             rotor = cmath.exp(1j * float(mechanical_angle(
                 np.array([middle]), meta.microsteps_per_fullstep, meta.rotor_teeth)[0]))
-        out.append(Measured(seg, h, saturated, seen, rate + error, own, options.first_sample,
+        out.append(Measured(seg, h, saturated, seen, rate + error, own, searched,
+                            options.first_sample,
                             0.0 if delays is None else float(delays.mean()), rotor, halves,
                             hidden))
     return out, rejected

@@ -201,6 +201,29 @@ def test_the_run_s_clock_puts_every_hold_on_one_sawtooth_from_a_few_wraps_placed
     assert shifted[0] == pytest.approx(offset[away][0])
 
 
+@pytest.mark.parametrize("ppm", [-214.0, 214.0])
+@pytest.mark.parametrize("early", [True, False])
+def test_a_hold_that_found_no_wrap_keeps_the_lattice_s_wrap_outside_itself(
+    ppm: float, early: bool,
+) -> None:
+    # The lattice's next wrap, 1/|δ| on from the one placed, lands 40 samples into a hold
+    # (or 40 from its end) that the waveform shows has none: the hold takes it to fall
+    # at its nearer end, so its delays are a ramp without a step, and the count the
+    # lattice has on the far side of the hold is kept.
+    rate = ppm * 1e-6
+    clock = ClockPhase.of(rate, [1_000])
+    assert clock.anchor is not None
+    period = 1.0 / abs(rate)
+    start = int(clock.anchor + period) - (40 if early else 210)
+    index = np.arange(start, start + 250, dtype=np.float64)
+    stepped = clock.delays(index)
+    assert float(np.ptp(np.diff(stepped))) > 0.5  # the lattice puts a wrap inside
+    clear = clock.delays(index, searched=True)
+    assert float(np.ptp(np.diff(clear))) < 1e-12  # a ramp, no step
+    kept = stepped[-1] if early else stepped[0]
+    assert (clear[-1] if early else clear[0]) == pytest.approx(kept)
+
+
 def test_without_a_wrap_placed_the_run_s_clock_is_its_ramp() -> None:
     clock = ClockPhase.of(-200e-6, [])
     index = np.arange(0.0, 3000.0)
