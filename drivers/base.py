@@ -15,11 +15,12 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from types import TracebackType
-from typing import TypeVar
+from typing import ClassVar, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
+from drivers.transports import DriveTraits
 from station.core import Trims
 from station.errors import DeviceTimeout, InputError
 
@@ -134,6 +135,9 @@ class Drive(ABC):
     """A stepper drive with trimmable phase currents (ICD.md §2 or §4)."""
 
     name: str = "drive"
+    TRAITS: ClassVar[DriveTraits] = DriveTraits()
+    """What the transport gives the station (``drivers.transports``), asked of the
+    class before the drive is opened and of the instance while it runs."""
 
     @abstractmethod
     def identity(self) -> DeviceIdentity: ...
@@ -186,7 +190,7 @@ class Drive(ABC):
     @property
     def resettable(self) -> bool:
         """Whether ``reset`` exists on this transport (ICD.md §4 gives Modbus none)."""
-        return True
+        return self.TRAITS.resettable
 
     @property
     def reports_state(self) -> bool:
@@ -195,7 +199,7 @@ class Drive(ABC):
         When it does not (a Modbus drive), recordings and analysis only know the
         drive's state from what the station commanded, and when.
         """
-        return True
+        return self.TRAITS.reports_state
 
     def check(self) -> None:
         """Raise a station error if the drive left the state the station put it in.

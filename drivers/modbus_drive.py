@@ -48,6 +48,7 @@ from drivers.modbus_map import (
     ModbusLink,
     Register,
 )
+from drivers.transports import DriveTraits
 from station.core import Trims
 from station.errors import (
     DeviceError,
@@ -91,6 +92,9 @@ def _exception_meaning(code: int) -> str:
 
 class ModbusDrive(Drive):
     """A CiA 402 stepper drive with current trims behind ICD.md §4's holding registers."""
+
+    # Nothing on the CAN bus (the station logs its own writes), and no reset register.
+    TRAITS = DriveTraits(reports_state=False, resettable=False)
 
     def __init__(self, endpoint: ModbusEndpoint, *, name: str = "drive",
                  state_timeout_s: float = 0.5, keep_alive_s: float = 0.2) -> None:
@@ -240,14 +244,6 @@ class ModbusDrive(Drive):
         self._expect_enabled = False
         self.set_velocity(0)
         self._machine.disable()
-
-    @property
-    def reports_state(self) -> bool:
-        return False
-
-    @property
-    def resettable(self) -> bool:
-        return False
 
     def check(self) -> None:
         self._raise_if_dropped()

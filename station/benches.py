@@ -25,7 +25,6 @@ import uuid
 from collections.abc import Iterator, Mapping
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, replace
-from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
@@ -53,6 +52,7 @@ from drivers.modbus_map import (
     PTY_PARITY,
     ModbusLink,
 )
+from drivers.transports import Transport, drive_traits
 from station.analysis.commanded import CommandTiming
 from station.core import Axis, Effect, LoadKind
 from station.errors import DeviceError, InputError
@@ -78,13 +78,6 @@ SIMULATOR: Final = "station.sim.bench"
 """The simulated bench's module, imported only when a bench is simulated (as python-can
 imports an interface's module only when it is named): the runtime never needs the
 simulator, and the simulator builds on the runtime (import-linter holds both)."""
-
-
-class Transport(StrEnum):
-    """How the station reaches the drive (CLI.md: CANopen or Modbus)."""
-
-    CANOPEN = "canopen"
-    MODBUS = "modbus"
 
 
 class BenchFileError(InputError):
@@ -140,8 +133,9 @@ class BenchSpec:
 
     @property
     def sees_drive_angle(self) -> bool:
-        """Whether the drive's position demand is on the bus with every SYNC (CANopen)."""
-        return self.transport is Transport.CANOPEN
+        """Whether the drive's position demand is on the bus with every SYNC: asked of the
+        transport's driver (``drivers.transports``), before anything is opened."""
+        return drive_traits(self.transport).reports_state
 
 
 SIM_SPEC = BenchSpec(name=SIM_BENCH, station_id=DEFAULT_STATION_ID, sim=SimSettings())

@@ -214,6 +214,9 @@ class _Calibration:
         self.session = session
         self.observer = observer
         self.drive: Drive = session.drive
+        # Asked of the drive once: whether its electrical angle comes with every sample
+        # (the phasors then share one reference), or only magnitudes mean anything.
+        self.sees_angle = session.drive.reports_state
         self.commands: CommandLog | None = None  # a drive that reports nothing on the bus
         self.period_s = session.spec.sync_period_s
         self.velocity = 0
@@ -560,7 +563,7 @@ class _Calibration:
         """The sensor's clock over the run so far, as the holds timed it and the phasors
         refine it; None where no phasor is used (without the drive's angle only
         magnitudes are)."""
-        if self.commands is not None:
+        if not self.sees_angle:
             return None
         clock = clock_from_phasors(held, pooled_clock(self.clock_seen), self.wraps)
         self.clock_phasors = clock.rate
@@ -609,7 +612,7 @@ class _Calibration:
         try:
             if isinstance(sweep, PaperSweep):
                 estimate = self._paper(motion, sweep)
-            elif self.commands is not None:
+            elif not self.sees_angle:
                 # No drive angle: the coherent method's phases mean nothing here.
                 assert self.recipe.magnitude_sweep is not None  # checked with the request
                 estimate = self._magnitude(motion, self.recipe.magnitude_sweep, centre)

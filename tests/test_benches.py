@@ -10,6 +10,7 @@ import pytest
 
 from drivers.canbus import BusConfig, BusMonitor, bench_tpdo_cob_ids
 from drivers.modbus_map import ModbusLink
+from drivers.transports import Transport
 from station.benches import (
     BENCH_ENV,
     SIM_BENCH,
@@ -18,7 +19,6 @@ from station.benches import (
     BenchFileError,
     BenchSpec,
     Fixture,
-    Transport,
     load_bench,
     open_bench,
     parse_bench,

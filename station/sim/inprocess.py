@@ -59,6 +59,7 @@ from drivers.base import DriveState
 from drivers.canbus import check_node_id
 from drivers.cia402 import ENABLE_STEPS
 from drivers.eds import DeviceKind, load_od
+from drivers.transports import Transport
 from station import __version__
 from station.analysis.timeline import (
     PAYLOAD_BYTES,
@@ -67,7 +68,6 @@ from station.analysis.timeline import (
     build_timeline,
     icd_frames,
 )
-from station.benches import Transport
 from station.cia301 import SYNC_COB_ID, SYNC_COUNTER_OVERFLOW
 from station.core import GAIN_LIMITS, SENSOR_COUNTER_MODULUS, SENSOR_RANGES_G, Trims
 from station.errors import InputError
