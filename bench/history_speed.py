@@ -49,7 +49,7 @@ INSERT INTO runs (
     {", ".join(f"trims_estimated_{c}" for c in _TRIM_COLUMNS)},
     {", ".join(f"uncertainty_{c}" for c in _TRIM_COLUMNS)},
     trims_stored, before_h1, before_h2, after_h1, after_h2, method, fit, warnings,
-    recording, recording_sha256, motion_s
+    recording, recording_sha256, motion_s, run_uuid
 )
 SELECT
     serial, :kind, :recipe_name, :recipe_version, :recipe_sha256, 1 + i % 4, 'operator',
@@ -61,7 +61,8 @@ SELECT
     1.5, 1.25, 0.75, 0.8,
     verdict = :pass, 0.01 + (i % 97) * 1e-4, 0.005 + (i % 89) * 1e-4, 0.001, 0.0007,
     'coherent', '{{"h1": {{"r2": 0.998, "chi2_reduced": 1.1}}, "h2": {{"r2": 0.991}}}}', '[]',
-    '/var/station/recordings/' || serial || '-' || i || '.blf', printf('%064x', i), 187.5
+    '/var/station/recordings/' || serial || '-' || i || '.blf', printf('%064x', i), 187.5,
+    printf('00000000-0000-4000-8000-%012x', i)
 FROM (
     SELECT
         i,

@@ -44,11 +44,12 @@ from bench.record import BenchRecord, Goal
 from station import benches
 from station.benches import SIM_SPEC
 from station.paths import HOME_ENV
+from station.rows import RunFilter
 from station.runs import Run, Verdict
 from station.service import Station, calibrate
 from station.sim.bench import SimBench, TrimsLeft
 from station.simsettings import Fault, FaultKind, SimSettings
-from station.store import RunFilter, Store
+from station.store import Store
 
 RUNS = 200
 UNITS = tuple(f"SN{5001 + i}" for i in range(40))

@@ -43,6 +43,7 @@ from station.core import Effect, LoadKind
 from station.errors import ExitCode, InputError, StationError
 from station.procedure import Step
 from station.recipes import available_recipes, load_recipe
+from station.rows import RunFilter
 from station.run_report import (
     CSV_COLUMNS,
     calibration_dict,
@@ -68,7 +69,6 @@ from station.service import (
 )
 from station.signals import stop_on_signals
 from station.sim.record import SimRecordRequest, describe_unit, record_simulation
-from station.store import RunFilter
 from station.views import (
     diagnosis_view,
     run_view,
@@ -452,9 +452,10 @@ def _step_display(description: str, enabled: bool) -> Iterator[Any]:
 
 
 DbOption = Annotated[
-    Path | None,
+    str | None,
     typer.Option(
-        "--db", help="Results database (default: $STATION_DB, else $STATION_HOME/station.db)."
+        "--db", help="Results database: a SQLite file, or a line's postgresql://user@host/db "
+        "(default: $STATION_DB, else $STATION_HOME/station.db)."
     ),
 ]
 BenchOption = Annotated[
@@ -482,7 +483,7 @@ FormatOption = Annotated[
 ]
 
 
-def _station(db: Path | None, bench: str | None, operator: str | None) -> Station:
+def _station(db: str | None, bench: str | None, operator: str | None) -> Station:
     return Station(database_path(db), load_bench(bench), operator or default_operator())
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from enum import StrEnum
 from typing import Any
+from uuid import UUID, uuid4
 
 from station.core import Trims
 from station.errors import ExitCode
@@ -159,7 +160,10 @@ class Run:
     started_at: datetime = field(default_factory=lambda: datetime.now(UTC))
     service_reason: str | None = None  # field service: why the unit came back
     previous_run_id: int | None = None  # field service: the run whose trims it had
-    run_id: int | None = None
+    # Who the run is, wherever it is stored: a spooled run forwarded to a line's database
+    # is the same run there, never a second one. None on runs recorded before it existed.
+    run_uuid: UUID | None = field(default_factory=uuid4)
+    run_id: int | None = None  # the database's own number, in the order runs began there
     finished_at: datetime | None = None
     verdict: Verdict | None = None  # None while running
     reason: str | None = None  # why ERROR/ABORTED, or a summary of a FAIL

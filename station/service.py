@@ -26,7 +26,7 @@ from station.benches import BenchSession, BenchSpec, open_bench
 from station.core import Trims
 from station.errors import IdentityMismatch, InputError, StationError
 from station.limits import drift, drift_warnings
-from station.paths import default_database
+from station.paths import default_database, station_home
 from station.procedure import (
     CalibrationRequest,
     Observer,
@@ -43,9 +43,10 @@ from station.recipes import (
     load_recipe,
     parse_recipe,
 )
+from station.rows import RunFilter, VerificationRecord
 from station.runs import LimitName, RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
-from station.store import RunFilter, Store, VerificationRecord
+from station.storage import DbTarget, RunStore, is_url, open_store, target_of
 
 log = logging.getLogger(__name__)
 
@@ -56,17 +57,22 @@ RECORDING_SUFFIX = ".blf"
 """Vector BLF: compressed, and read by every CAN tool a motion engineer owns."""
 
 
-def database_path(explicit: Path | None = None) -> Path:
-    """``--db``, else ``STATION_DB``, else ``$STATION_HOME/station.db``."""
+def database_path(explicit: str | Path | None = None) -> DbTarget:
+    """``--db``, else ``STATION_DB``, else ``$STATION_HOME/station.db``: a SQLite file,
+    or a line's PostgreSQL (a ``postgresql://`` URL)."""
     if explicit is not None:
-        return explicit.expanduser()
+        return target_of(str(explicit))
     from_env = os.environ.get(DB_ENV)
-    return Path(from_env).expanduser() if from_env else default_database()
+    return target_of(from_env) if from_env else default_database()
 
 
-def recordings_dir(db_path: Path) -> Path:
-    """Recordings live beside the database, one folder per unit."""
-    return db_path.parent / RECORDINGS_DIR
+def recordings_dir(db_path: DbTarget) -> Path:
+    """Recordings live beside the station's own database, one folder per unit; with a
+    line's database they stay on the station's disk, in its home (records hold their
+    SHA-256, the recordings stay where they were made)."""
+    if isinstance(db_path, str) and is_url(db_path):
+        return station_home() / RECORDINGS_DIR
+    return Path(db_path).parent / RECORDINGS_DIR
 
 
 def default_operator() -> str:
@@ -77,7 +83,7 @@ def default_operator() -> str:
 class Station:
     """Where results go, which bench is attached, and who is at the station."""
 
-    db_path: Path
+    db_path: DbTarget  # a SQLite file, or a postgresql:// URL
     bench: BenchSpec
     operator: str
 
@@ -102,7 +108,7 @@ def calibrate(station: Station, serial_label: str, recipe_name: str | None = Non
     """Production calibration of one unit (``station calibrate``)."""
     serial = parse_serial(serial_label)
     recipe = load_recipe(recipe_name or DEFAULT_RECIPE)
-    with Store(station.db_path) as store:
+    with open_store(station.db_path) as store:
         run = _new_run(station, serial, recipe, RunKind.CALIBRATE)
         return Calibration(_execute(store, station, serial, recipe, run, observer=observer))
 
@@ -120,12 +126,12 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         raise InputError("--reason must say why the unit is recalibrated")
     # A named recipe is checked before the database is even opened (nothing done on error).
     chosen = load_recipe(recipe_name) if recipe_name is not None else None
-    with Store(station.db_path) as store:
+    with open_store(station.db_path) as store:
         previous = store.last_stored(serial.label)
         if previous is None and not force:
             raise InputError(
                 f"{serial} has no recorded calibration at this station's database "
-                f"({station.db_path}); use --force to calibrate it anyway"
+                f"({store.location}); use --force to calibrate it anyway"
             )
         if chosen is not None:
             recipe = chosen
@@ -142,7 +148,7 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         return Calibration(run, previous)
 
 
-def _recipe_of(store: Store, previous: Run) -> Recipe:
+def _recipe_of(store: RunStore, previous: Run) -> Recipe:
     """The current version of the unit's last recipe; the very text it used if not shipped.
 
     A unit calibrated with a recipe file that is not (or no longer) among the
@@ -179,7 +185,7 @@ def _new_run(station: Station, serial: Serial, recipe: Recipe, kind: RunKind) ->
     )
 
 
-def _execute(store: Store, station: Station, serial: Serial, recipe: Recipe, run: Run, *,
+def _execute(store: RunStore, station: Station, serial: Serial, recipe: Recipe, run: Run, *,
              observer: Observer | None, previous_trims: Trims | None = None) -> Run:
     """Run the procedure and record the outcome, whatever it is."""
     if not station.bench.sees_drive_angle and not recipe.angle_free:
@@ -225,7 +231,7 @@ def _execute(store: Store, station: Station, serial: Serial, recipe: Recipe, run
     return run
 
 
-def _recordings_folder(db_path: Path, serial: Serial) -> Path:
+def _recordings_folder(db_path: DbTarget, serial: Serial) -> Path:
     """The unit's recordings folder, made writable now: refused before any bus traffic."""
     folder = recordings_dir(db_path) / serial.label
     try:
@@ -238,7 +244,7 @@ def _recordings_folder(db_path: Path, serial: Serial) -> Path:
     return folder
 
 
-def _finish(store: Store, recipe: Recipe, run: Run, previous_trims: Trims | None) -> None:
+def _finish(store: RunStore, recipe: Recipe, run: Run, previous_trims: Trims | None) -> None:
     """Whatever happened, the run gets a verdict and is recorded."""
     if run.verdict is None:
         run.verdict, run.reason = Verdict.ABORTED, "the station was stopped during the run"
@@ -267,7 +273,7 @@ class Verification:
 def verify(station: Station, serial_label: str) -> Verification:
     """Read the unit's trims and calibration record; compare with the database (read-only)."""
     serial = parse_serial(serial_label)
-    with Store(station.db_path) as store:
+    with open_store(station.db_path) as store:
         recorded = store.last_stored(serial.label)
         with open_bench(station.bench, serial) as session:
             check_identity(session.drive, serial)
@@ -293,14 +299,14 @@ def verify(station: Station, serial_label: str) -> Verification:
 # --- QA ---------------------------------------------------------------------------------------
 
 
-def history(db_path: Path, serial_label: str) -> list[Run]:
+def history(db_path: DbTarget, serial_label: str) -> list[Run]:
     serial = parse_serial(serial_label)
-    with Store(db_path) as store:
+    with open_store(db_path) as store:
         return store.history(serial.label)
 
 
-def query(db_path: Path, run_filter: RunFilter) -> list[Run]:
-    with Store(db_path) as store:
+def query(db_path: DbTarget, run_filter: RunFilter) -> list[Run]:
+    with open_store(db_path) as store:
         return store.query(run_filter)
 
 
@@ -314,7 +320,7 @@ class RecipeStatistics:
     quantities: dict[str, Capability] = field(default_factory=dict)
 
 
-def statistics(db_path: Path, run_filter: RunFilter) -> list[RecipeStatistics]:
+def statistics(db_path: DbTarget, run_filter: RunFilter) -> list[RecipeStatistics]:
     """Mean, standard deviation and Cpk of trims and residual ripple, per recipe version.
 
     Capability is judged against the limits the runs themselves were judged by: each
@@ -323,7 +329,7 @@ def statistics(db_path: Path, run_filter: RunFilter) -> list[RecipeStatistics]:
     Only runs that measured a unit (pass or fail) count; errors and aborts measured
     nothing.
     """
-    with Store(db_path) as store:
+    with open_store(db_path) as store:
         runs = store.query(run_filter)
     groups: dict[str, list[Run]] = {}
     for run in runs:

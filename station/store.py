@@ -19,10 +19,8 @@ database at all (a directory, an unwritable folder, a read-only file) is a
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import math
 import os
 import re
 import socket
@@ -30,7 +28,7 @@ import sqlite3
 import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib.resources import files
 from importlib.resources.abc import Traversable
@@ -38,19 +36,24 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
-from station.core import Trims
 from station.errors import DatabaseError, DatabasePathError, InputError
-from station.runs import (
-    LimitCheck,
-    RecipeRef,
-    Ripple,
-    Run,
-    RunKind,
-    Verdict,
-    limit_name,
-    parse_utc_iso,
-    utc_iso,
+from station.rows import (
+    LIMIT_COLUMNS,
+    RESULT_COLUMNS,
+    START_COLUMNS,
+    VERIFICATION_COLUMNS,
+    RunFilter,
+    VerificationRecord,
+    limit_from,
+    limit_values,
+    recipe_values,
+    result_values,
+    run_from,
+    start_values,
+    verification_from,
+    verification_values,
 )
+from station.runs import LimitCheck, Run, Verdict, utc_iso
 from station.signals import held
 
 log = logging.getLogger(__name__)
@@ -62,62 +65,6 @@ BUSY_TIMEOUT_MS = 5000
 """Several stations may share one database file: wait this long for a lock."""
 
 _MIGRATION_FILE = re.compile(r"^(?P<number>\d{4})_[a-z0-9_]+\.sql$")
-
-# Column names are the dataclass's field names, so a new trim cannot be forgotten here.
-_TRIM_FIELDS = tuple(f.name for f in fields(Trims))
-_RIPPLE_FIELDS = tuple(f.name for f in fields(Ripple))
-
-# What is known when a run begins: written once by begin_run, never updated.
-_START_COLUMNS = (
-    "serial",
-    "kind",
-    "recipe_name",
-    "recipe_version",
-    "recipe_sha256",
-    "station_id",
-    "operator",
-    "software_version",
-    "bench",
-    "started_at",
-    "service_reason",
-    "previous_run_id",
-)
-
-
-def _group(prefix: str, names: Sequence[str]) -> tuple[str, ...]:
-    return tuple(f"{prefix}_{name}" for name in names)
-
-
-# What the run learns: finish_run writes all of these, once (a finished run is final).
-_TRIM_GROUPS = ("trims_before", "trims_after", "trims_estimated", "uncertainty")
-_RIPPLE_GROUPS = ("before", "after")
-_RESULT_COLUMNS = (
-    "finished_at",
-    "verdict",
-    "reason",
-    *(column for prefix in _TRIM_GROUPS for column in _group(prefix, _TRIM_FIELDS)),
-    "trims_stored",
-    *(column for prefix in _RIPPLE_GROUPS for column in _group(prefix, _RIPPLE_FIELDS)),
-    "method",
-    "fit",
-    "warnings",
-    "recording",
-    "recording_sha256",
-    "motion_s",
-)
-_LIMIT_COLUMNS = ("run_id", "name", "position", "value", "low", "high", "unit", "passed", "note")
-_VERIFICATION_COLUMNS = (
-    "serial",
-    "verified_at",
-    "station_id",
-    "operator",
-    "bench",
-    "trims_match",
-    *_group("drive", _TRIM_FIELDS),
-    "recorded_run_id",
-    *_group("recorded", _TRIM_FIELDS),
-)
-
 
 def _insert(table: str, columns: Sequence[str], verb: str = "INSERT") -> str:
     return (
@@ -131,9 +78,9 @@ _INSERT_RECIPE = _insert(
     "recipes", ("sha256", "name", "version", "text", "first_used_at"), "INSERT OR IGNORE"
 )
 # The owner is the store's, not the run's: it says which process wrote the row.
-_INSERT_RUN = _insert("runs", (*_START_COLUMNS, "owner"))
+_INSERT_RUN = _insert("runs", (*START_COLUMNS, "owner"))
 _UPDATE_RESULTS = (
-    f"UPDATE runs SET {', '.join(f'{c} = :{c}' for c in _RESULT_COLUMNS)} WHERE run_id = :run_id"
+    f"UPDATE runs SET {', '.join(f'{c} = :{c}' for c in RESULT_COLUMNS)} WHERE run_id = :run_id"
 )
 # Served by the partial index runs_open: the open runs, however many finished ones there are.
 _SELECT_OPEN_RUNS = "SELECT run_id, serial, owner FROM runs WHERE verdict IS NULL ORDER BY run_id"
@@ -141,12 +88,12 @@ _FINISH_INTERRUPTED = (
     "UPDATE runs SET verdict = :verdict, reason = :reason, finished_at = :finished_at "
     "WHERE run_id = :run_id AND verdict IS NULL"
 )
-_INSERT_LIMIT = _insert("limit_checks", _LIMIT_COLUMNS)
-_INSERT_VERIFICATION = _insert("verifications", _VERIFICATION_COLUMNS)
+_INSERT_LIMIT = _insert("limit_checks", LIMIT_COLUMNS)
+_INSERT_VERIFICATION = _insert("verifications", VERIFICATION_COLUMNS)
 _SELECT_RUNS = "SELECT * FROM runs"
 # One query for the limits of any number of runs: the ids travel as one JSON array.
 _SELECT_LIMITS = (
-    f"SELECT {', '.join(_LIMIT_COLUMNS)} FROM limit_checks "
+    f"SELECT {', '.join(LIMIT_COLUMNS)} FROM limit_checks "
     "WHERE run_id IN (SELECT value FROM json_each(?)) ORDER BY run_id, position"
 )
 
@@ -179,47 +126,6 @@ def load_migrations(source: Traversable) -> tuple[Migration, ...]:
     if numbers != list(range(1, len(found) + 1)):
         raise DatabaseError(str(source), f"migrations must be numbered 1..n, found {numbers}")
     return tuple(found)
-
-
-@dataclass(frozen=True)
-class RunFilter:
-    """What QA asks for; every field left None matches everything.
-
-    ``since`` and ``until`` bound ``started_at`` inclusively. With ``limit``,
-    the newest ``limit`` matching runs are kept (a dashboard's "last 50"), still
-    returned oldest first like every other list of runs.
-    """
-
-    serial: str | None = None
-    since: datetime | None = None
-    until: datetime | None = None
-    recipe: str | None = None
-    verdict: Verdict | None = None
-    station_id: int | None = None
-    limit: int | None = None
-
-    def __post_init__(self) -> None:
-        if self.limit is not None and self.limit < 0:
-            raise ValueError(f"limit must be >= 0, got {self.limit}")
-
-
-@dataclass(frozen=True)
-class VerificationRecord:
-    """A unit's drive trims read back and compared with what the station recorded.
-
-    ``recorded_run_id`` and ``recorded_trims`` are None when the station has no
-    stored trims for the unit at all, which is itself a finding.
-    """
-
-    serial: str
-    verified_at: datetime
-    station_id: int
-    operator: str
-    bench: str
-    match: bool
-    drive_trims: Trims
-    recorded_run_id: int | None
-    recorded_trims: Trims | None
 
 
 # -- who runs an open run, and whether that process is gone -------------------------
@@ -456,6 +362,11 @@ class Store:
     # -- lifetime --------------------------------------------------------------
 
     @property
+    def location(self) -> str:
+        """The database as messages name it."""
+        return str(self.path)
+
+    @property
     def closed(self) -> bool:
         return self._conn is None
 
@@ -497,20 +408,7 @@ class Store:
         """
         if run.run_id is not None:
             raise ValueError(f"run of {run.serial} already begun as run {run.run_id}")
-        digest = hashlib.sha256(recipe_text.encode("utf-8")).hexdigest()
-        if digest != run.recipe.sha256:
-            # The hash is how a run finds its recipe again; a wrong one would lie forever.
-            raise ValueError(
-                f"recipe {run.recipe.name} {run.recipe.version}: sha256 {run.recipe.sha256} "
-                f"is not the hash of the text given ({digest})"
-            )
-        recipe = {
-            "sha256": digest,
-            "name": run.recipe.name,
-            "version": run.recipe.version,
-            "text": recipe_text,
-            "first_used_at": utc_iso(run.started_at),
-        }
+        recipe = recipe_values(run, recipe_text)
         owner = self._owner if self._owner is not None else current_owner()
         # Not held(): a stop arriving during this transaction rolls it back to nothing begun.
         with self._transaction(f"begin a run of {run.serial}", write=True) as conn:
@@ -519,7 +417,7 @@ class Store:
             gone = self._gone_owners(conn, owner)
             conn.execute(_INSERT_RECIPE, recipe)
             run_id = conn.execute(
-                _INSERT_RUN, {**_start_values(run), "owner": owner.to_json()}
+                _INSERT_RUN, {**start_values(run), "owner": owner.to_json()}
             ).lastrowid
             if run_id is None:  # pragma: no cover - sqlite3 always sets it after an INSERT
                 raise self._error("begin a run", None)
@@ -556,8 +454,8 @@ class Store:
         names = [check.name for check in run.limits]
         if len(set(names)) != len(names):
             raise ValueError(f"run {run.run_id}: a limit is checked twice in {names}")
-        values = _result_values(run)
-        limits = [_limit_values(run.run_id, i, check) for i, check in enumerate(run.limits)]
+        values = result_values(run)
+        limits = [limit_values(run.run_id, i, check) for i, check in enumerate(run.limits)]
         # held(): a stop signal arriving now waits for the commit, so the run is recorded whole.
         with held(), self._transaction(f"finish run {run.run_id}", write=True) as conn:
             exists = conn.execute("SELECT 1 FROM runs WHERE run_id = ?", (run.run_id,))
@@ -628,17 +526,7 @@ class Store:
     # -- verifications ---------------------------------------------------------
 
     def add_verification(self, v: VerificationRecord) -> int:
-        values: dict[str, object] = {
-            "serial": v.serial,
-            "verified_at": utc_iso(v.verified_at),
-            "station_id": v.station_id,
-            "operator": v.operator,
-            "bench": v.bench,
-            "trims_match": int(v.match),
-            **_trim_values("drive", v.drive_trims),
-            "recorded_run_id": v.recorded_run_id,
-            **_trim_values("recorded", v.recorded_trims),
-        }
+        values = verification_values(v)
         with held(), self._transaction(f"record a verification of {v.serial}",
                                        write=True) as conn:
             verification_id = conn.execute(_INSERT_VERIFICATION, values).lastrowid
@@ -653,20 +541,7 @@ class Store:
                 "SELECT * FROM verifications WHERE serial = ? ORDER BY verification_id",
                 (serial,),
             ).fetchall()
-        return [
-            VerificationRecord(
-                serial=row["serial"],
-                verified_at=parse_utc_iso(row["verified_at"]),
-                station_id=row["station_id"],
-                operator=row["operator"],
-                bench=row["bench"],
-                match=bool(row["trims_match"]),
-                drive_trims=_required_trims(row, "drive"),
-                recorded_run_id=row["recorded_run_id"],
-                recorded_trims=_trims_from(row, "recorded"),
-            )
-            for row in rows
-        ]
+        return [verification_from(row) for row in rows]
 
     # -- plumbing --------------------------------------------------------------
 
@@ -832,8 +707,8 @@ class Store:
             limits: dict[int, list[LimitCheck]] = {run_id: [] for run_id in ids}
             if ids:
                 for row in conn.execute(_SELECT_LIMITS, (json.dumps(ids),)):
-                    limits[row["run_id"]].append(_limit_from(row))
-        return [_run_from(row, limits[row["run_id"]]) for row in rows]
+                    limits[row["run_id"]].append(limit_from(row))
+        return [run_from(row, limits[row["run_id"]]) for row in rows]
 
 
 # -- rows <-> dataclasses ---------------------------------------------------------
@@ -863,154 +738,3 @@ def _user_version(conn: sqlite3.Connection) -> int:
     return int(conn.execute("PRAGMA user_version").fetchone()[0])
 
 
-def _time_or_none(moment: datetime | None) -> str | None:
-    return None if moment is None else utc_iso(moment)
-
-
-def _parse_or_none(text: str | None) -> datetime | None:
-    return None if text is None else parse_utc_iso(text)
-
-
-def _group_values(
-    prefix: str, names: Sequence[str], value: Trims | Ripple | None
-) -> dict[str, float | None]:
-    columns = _group(prefix, names)
-    if value is None:
-        return dict.fromkeys(columns)
-    return {column: getattr(value, name) for column, name in zip(columns, names, strict=True)}
-
-
-def _trim_values(prefix: str, trims: Trims | None) -> dict[str, float | None]:
-    return _group_values(prefix, _TRIM_FIELDS, trims)
-
-
-def _ripple_values(prefix: str, ripple: Ripple | None) -> dict[str, float | None]:
-    return _group_values(prefix, _RIPPLE_FIELDS, ripple)
-
-
-def _floats_from(row: sqlite3.Row, columns: Sequence[str]) -> list[float] | None:
-    """A group of REAL columns: None when all are NULL.
-
-    SQLite stores NaN as NULL, so a NULL beside numbers was a NaN.
-    """
-    raw = [row[column] for column in columns]
-    if all(value is None for value in raw):
-        return None
-    return [math.nan if value is None else float(value) for value in raw]
-
-
-def _trims_from(row: sqlite3.Row, prefix: str) -> Trims | None:
-    values = _floats_from(row, _group(prefix, _TRIM_FIELDS))
-    return None if values is None else Trims(*values)
-
-
-def _required_trims(row: sqlite3.Row, prefix: str) -> Trims:
-    trims = _trims_from(row, prefix)
-    if trims is None:  # the schema makes these columns NOT NULL
-        raise ValueError(f"{prefix} trims missing from a row that requires them")
-    return trims
-
-
-def _ripple_from(row: sqlite3.Row, prefix: str) -> Ripple | None:
-    values = _floats_from(row, _group(prefix, _RIPPLE_FIELDS))
-    return None if values is None else Ripple(*values)
-
-
-def _start_values(run: Run) -> dict[str, object]:
-    return {
-        "serial": run.serial,
-        "kind": run.kind.value,
-        "recipe_name": run.recipe.name,
-        "recipe_version": run.recipe.version,
-        "recipe_sha256": run.recipe.sha256,
-        "station_id": run.station_id,
-        "operator": run.operator,
-        "software_version": run.software_version,
-        "bench": run.bench,
-        "started_at": utc_iso(run.started_at),
-        "service_reason": run.service_reason,
-        "previous_run_id": run.previous_run_id,
-    }
-
-
-def _result_values(run: Run) -> dict[str, object]:
-    values: dict[str, object] = {
-        "run_id": run.run_id,
-        "finished_at": _time_or_none(run.finished_at),
-        "verdict": None if run.verdict is None else run.verdict.value,
-        "reason": run.reason,
-        **_trim_values("trims_before", run.trims_before),
-        **_trim_values("trims_after", run.trims_after),
-        **_trim_values("trims_estimated", run.trims_estimated),
-        **_trim_values("uncertainty", run.uncertainty),
-        "trims_stored": int(run.trims_stored),
-        **_ripple_values("before", run.before),
-        **_ripple_values("after", run.after),
-        "method": run.method,
-        # JSON keeps the fit's nesting and the warnings' order without more tables.
-        "fit": None if run.fit is None else json.dumps(run.fit),
-        "warnings": json.dumps(run.warnings),
-        "recording": run.recording,
-        "recording_sha256": run.recording_sha256,
-        "motion_s": run.motion_s,
-    }
-    return values
-
-
-def _run_from(row: sqlite3.Row, limits: Sequence[LimitCheck]) -> Run:
-    return Run(
-        serial=row["serial"],
-        kind=RunKind(row["kind"]),
-        recipe=RecipeRef(row["recipe_name"], row["recipe_version"], row["recipe_sha256"]),
-        station_id=row["station_id"],
-        operator=row["operator"],
-        software_version=row["software_version"],
-        bench=row["bench"],
-        started_at=parse_utc_iso(row["started_at"]),
-        service_reason=row["service_reason"],
-        previous_run_id=row["previous_run_id"],
-        run_id=row["run_id"],
-        finished_at=_parse_or_none(row["finished_at"]),
-        verdict=None if row["verdict"] is None else Verdict(row["verdict"]),
-        reason=row["reason"],
-        limits=tuple(limits),
-        trims_before=_trims_from(row, "trims_before"),
-        trims_after=_trims_from(row, "trims_after"),
-        trims_stored=bool(row["trims_stored"]),
-        trims_estimated=_trims_from(row, "trims_estimated"),
-        uncertainty=_trims_from(row, "uncertainty"),
-        before=_ripple_from(row, "before"),
-        after=_ripple_from(row, "after"),
-        method=row["method"],
-        fit=None if row["fit"] is None else json.loads(row["fit"]),
-        warnings=json.loads(row["warnings"]),
-        recording=row["recording"],
-        recording_sha256=row["recording_sha256"],
-        motion_s=row["motion_s"],
-    )
-
-
-def _limit_values(run_id: int, position: int, check: LimitCheck) -> dict[str, object]:
-    return {
-        "run_id": run_id,
-        "name": str(check.name),
-        "position": position,
-        "value": check.value,
-        "low": check.low,
-        "high": check.high,
-        "unit": check.unit,
-        "passed": None if check.passed is None else int(check.passed),  # NULL: did not apply
-        "note": check.note,
-    }
-
-
-def _limit_from(row: sqlite3.Row) -> LimitCheck:
-    return LimitCheck(
-        name=limit_name(row["name"]),
-        value=row["value"],
-        low=row["low"],
-        high=row["high"],
-        unit=row["unit"],
-        passed=None if row["passed"] is None else bool(row["passed"]),
-        note=row["note"],
-    )

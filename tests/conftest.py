@@ -21,7 +21,10 @@ from pathlib import Path
 from typing import Any
 
 import can.interfaces.virtual as virtual_bus
+import psycopg
 import pytest
+
+from tests.postgres import Cluster, server_binaries, throwaway_cluster
 
 _GRACE_S = 2.0
 
@@ -62,11 +65,24 @@ def nothing_left_open(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
         return connection
 
     monkeypatch.setattr(sqlite3, "connect", tracked)
+    servers: list[psycopg.Connection[Any]] = []
+    connect_server = psycopg.connect
+
+    def tracked_server(*args: Any, **kwargs: Any) -> psycopg.Connection[Any]:
+        connection: psycopg.Connection[Any] = connect_server(*args, **kwargs)
+        servers.append(connection)
+        return connection
+
+    monkeypatch.setattr(psycopg, "connect", tracked_server)
     yield
     left = [c for c in connections if _is_open(c)]
     for connection in left:
         connection.close()
     assert not left, f"{len(left)} SQLite connection(s) left open"
+    open_servers = [c for c in servers if not c.closed]
+    for server in open_servers:
+        server.close()
+    assert not open_servers, f"{len(open_servers)} PostgreSQL connection(s) left open"
     deadline = time.monotonic() + _GRACE_S
     while True:
         leaked = [t for t in threading.enumerate() if t not in threads_before and t.is_alive()]
@@ -76,3 +92,27 @@ def nothing_left_open(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
         time.sleep(0.02)
     assert not leaked, f"threads left running: {[t.name for t in leaked]}"
     assert queues <= 0, f"{queues} virtual CAN bus handle(s) left open"
+
+
+@pytest.fixture(scope="session")
+def postgresql_cluster() -> Iterator[Cluster]:
+    """A real PostgreSQL server for the session, on loopback; stopped at the end.
+
+    Without the server's binaries the tests that need it are skipped, except under CI
+    (``CI`` set), whose set-up installs them: there a missing server is a failure.
+    """
+    binaries = server_binaries()
+    if binaries is None:
+        message = "PostgreSQL's server binaries are not installed (Debian: postgresql)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    with throwaway_cluster(binaries) as cluster:
+        yield cluster
+
+
+@pytest.fixture
+def postgresql_url(postgresql_cluster: Cluster) -> Iterator[str]:
+    """A fresh, empty database of the session's server."""
+    with postgresql_cluster.database() as url:
+        yield url

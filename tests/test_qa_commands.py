@@ -15,6 +15,7 @@ from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
+from uuid import uuid4
 
 import pytest
 
@@ -22,9 +23,10 @@ from station.cli import main
 from station.core import Trims
 from station.limits import bound_checks, ripple_checks, summary, verdict_for
 from station.recipes import Recipe, RecipeError, load_recipe, parse_recipe
+from station.rows import RunFilter
 from station.runs import LimitCheck, RecipeRef, Ripple, Run, RunKind, Verdict
 from station.service import statistics as recipe_statistics
-from station.store import RunFilter, Store
+from station.store import Store
 
 OFFSETS_A = (60.0, 64.0, 68.0, 72.0)
 H1_AFTER = (0.004, 0.006, 0.005, 0.007)
@@ -181,7 +183,7 @@ def test_a_stored_run_with_an_unknown_limit_name_still_reads_back(db: Path) -> N
     """A newer station may have written limits this version does not know."""
     with Store(db) as store:
         run = store.history("SN503")[0]
-        future = replace(run, run_id=None, limits=(
+        future = replace(run, run_id=None, run_uuid=uuid4(), limits=(
             LimitCheck("thermal_drift_mA", 1.0, None, 2.0, "mA", True),
         ))
         store.begin_run(future, _line_recipe().text)

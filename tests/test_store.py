@@ -26,6 +26,7 @@ import pytest
 
 from station.core import Trims
 from station.errors import DatabaseError, DatabasePathError, ExitCode, InputError
+from station.rows import RunFilter, VerificationRecord
 from station.runs import (
     LimitCheck,
     LimitName,
@@ -36,13 +37,12 @@ from station.runs import (
     Verdict,
     utc_iso,
 )
+from station.storage import RunStore
 from station.store import (
     MIGRATIONS_PACKAGE,
     ProcessInfo,
-    RunFilter,
     RunOwner,
     Store,
-    VerificationRecord,
     current_owner,
     load_migrations,
     probe_process,
@@ -78,13 +78,14 @@ def _run(
     )
 
 
-def _begin(store: Store, run: Run) -> Run:
+def _begin(store: RunStore, run: Run) -> Run:
     _, text = _recipe(run.recipe.name, run.recipe.version)
     store.begin_run(run, text)
     return run
 
 
-def _record(store: Store, run: Run, verdict: Verdict = Verdict.PASS, *, stored: bool = True) -> Run:
+def _record(store: RunStore, run: Run, verdict: Verdict = Verdict.PASS, *,
+            stored: bool = True) -> Run:
     """Begin and finish ``run`` as the procedure would, with every result filled in."""
     _begin(store, run)
     run.verdict = verdict
@@ -94,7 +95,7 @@ def _record(store: Store, run: Run, verdict: Verdict = Verdict.PASS, *, stored: 
     return run
 
 
-def _finish(store: Store, run: Run, verdict: Verdict = Verdict.PASS) -> Run:
+def _finish(store: RunStore, run: Run, verdict: Verdict = Verdict.PASS) -> Run:
     """Finish an open run with whatever it learnt so far; a finish needs a verdict and time."""
     run.verdict = verdict
     run.finished_at = run.started_at + timedelta(seconds=42)
@@ -941,8 +942,9 @@ def test_migration_0002_keeps_every_row_and_protects_the_old_ones(
     before = _snapshot(db_path)
 
     with Store(db_path, owner=HERE, probe=_process_table) as store:
-        assert store.schema_version == 2
+        assert store.schema_version == len(load_migrations(files(MIGRATIONS_PACKAGE)))
         (old_pass,) = store.history("SN1")
+        assert old_pass.run_uuid is None  # recorded before runs had one (0003)
         assert old_pass.verdict is Verdict.PASS and len(old_pass.limits) == 1
         # The open run of version 1 has no owner: nothing proves its station stopped.
         _begin(store, _run("SN3"))
@@ -950,14 +952,36 @@ def test_migration_0002_keeps_every_row_and_protects_the_old_ones(
         assert store.history("SN2")[0].verdict is None
         assert store.open_run_owner(2) is None
     after = _snapshot(db_path)
-    assert [row[:-1] for row in after["runs"][:2]] == before["runs"]  # owner column added
-    assert [row[-1] for row in after["runs"][:2]] == [None, None]
+    # The owner (0002) and run_uuid (0003) columns added, empty on the old rows.
+    assert [row[:-2] for row in after["runs"][:2]] == before["runs"]
+    assert [row[-2:] for row in after["runs"][:2]] == [(None, None), (None, None)]
     assert {k: v for k, v in after.items() if k != "runs"} == {
         k: v for k, v in before.items() if k != "runs"}
     conn = _raw(db_path)
     try:
         with pytest.raises(sqlite3.IntegrityError, match="append-only"):
             conn.execute("DELETE FROM runs WHERE run_id = 1")
+    finally:
+        conn.close()
+
+
+def test_a_run_keeps_the_uuid_it_was_created_with_and_no_two_runs_share_one(
+    store: Store, db_path: Path
+) -> None:
+    run = _run("SN1")
+    assert run.run_uuid is not None
+    _begin(store, run)
+    (back,) = store.history("SN1")
+    assert back.run_uuid == run.run_uuid
+    twin = _run("SN2")
+    twin.run_uuid = run.run_uuid
+    with pytest.raises(DatabaseError, match="UNIQUE"):
+        _begin(store, twin)
+    assert [r.serial for r in store.query(RunFilter())] == ["SN1"]
+    conn = _raw(db_path)
+    try:
+        with pytest.raises(sqlite3.IntegrityError, match="append-only"):
+            conn.execute("UPDATE runs SET run_uuid = 'x' WHERE run_id = 1")
     finally:
         conn.close()
 

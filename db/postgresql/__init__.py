@@ -1,0 +1,1 @@
+"""Numbered SQL migrations of a line's central PostgreSQL results database."""

@@ -1,0 +1,373 @@
+"""A line's central results database on PostgreSQL (psycopg 3).
+
+The same tables, columns and append-only rules as a station's SQLite file
+(``db/postgresql``; the server's triggers refuse every change to a finished record,
+for every client), the same ``Run`` records back (``station.rows``), and the same
+interrupted-run check: each open run names the process that began it, and the next run
+begun on the same host finishes as aborted the runs whose process is provably gone
+(``why_gone``); a run begun on another host is that host's to judge. Many stations write
+at once: beginning a run, and a schema's first migration, are serialised by transaction
+advisory locks, and every read is one snapshot. Every psycopg failure surfaces as a
+``DatabaseError`` naming the database without its password.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from datetime import UTC, datetime
+from importlib.resources import files
+from importlib.resources.abc import Traversable
+from types import TracebackType
+from typing import Any, Final, Self
+from uuid import UUID
+
+import psycopg
+from psycopg.rows import RowMaker
+
+from station.errors import DatabaseError, InputError
+from station.rows import (
+    LIMIT_COLUMNS,
+    RESULT_COLUMNS,
+    START_COLUMNS,
+    VERIFICATION_COLUMNS,
+    RunFilter,
+    VerificationRecord,
+    limit_from,
+    limit_values,
+    recipe_values,
+    result_values,
+    run_from,
+    start_values,
+    verification_from,
+    verification_values,
+)
+from station.runs import LimitCheck, Run, Verdict, utc_iso
+from station.signals import held
+from station.storage import describe
+from station.store import (
+    MIGRATIONS_PACKAGE,
+    InterruptedRun,
+    Migration,
+    ProcessProbe,
+    RunOwner,
+    current_owner,
+    interrupted_reason,
+    load_migrations,
+    probe_process,
+    why_gone,
+)
+
+log = logging.getLogger(__name__)
+
+MIGRATIONS_FOLDER: Final = "postgresql"
+"""The PostgreSQL schema's migrations, within the ``db`` package."""
+CONNECT_TIMEOUT_S: Final = 5
+"""How long a station waits for the line's server before calling it unreachable."""
+_MIGRATION_LOCK: Final = 0x5354_4D47  # "STMG": one migrator at a time
+_BEGIN_LOCK: Final = 0x5354_5255  # "STRU": one run begun at a time (the interrupted check)
+
+# Booleans are 0/1 in SQLite and in the shared row mapping; PostgreSQL's are boolean.
+_BOOLEAN_COLUMNS: Final = frozenset({"trims_stored", "passed", "trims_match"})
+# Unquoted names fold to lower case in PostgreSQL: rows are read back under the schema's.
+_CANONICAL: Final = {name.lower(): name for name in (
+    *START_COLUMNS, *RESULT_COLUMNS, *LIMIT_COLUMNS, *VERIFICATION_COLUMNS,
+    "run_id", "owner", "verification_id", "text")}
+
+
+def _plain(value: object) -> object:
+    """A value as the shared row mapping reads it (times as ``utc_iso`` text)."""
+    if isinstance(value, datetime):
+        return utc_iso(value)
+    if isinstance(value, UUID):
+        return str(value)
+    return value
+
+
+def _rows(cursor: psycopg.Cursor[Any]) -> RowMaker[dict[str, Any]]:
+    names = [_CANONICAL.get(c.name, c.name) for c in cursor.description or ()]
+
+    def make(values: Sequence[Any]) -> dict[str, Any]:
+        return {name: _plain(v) for name, v in zip(names, values, strict=True)}
+
+    return make
+
+
+def _sql_values(values: dict[str, object]) -> dict[str, object]:
+    """Lower-case keys (the placeholders' names) and PostgreSQL's booleans."""
+    return {key.lower(): (None if value is None else bool(value)) if key in _BOOLEAN_COLUMNS
+            else value for key, value in values.items()}
+
+
+def _insert(table: str, columns: Sequence[str], tail: str = "") -> str:
+    names = [c.lower() for c in columns]
+    return (f"INSERT INTO {table} ({', '.join(names)}) "
+            f"VALUES ({', '.join(f'%({n})s' for n in names)}){tail}")
+
+
+_INSERT_RECIPE = _insert("recipes", ("sha256", "name", "version", "text", "first_used_at"),
+                         " ON CONFLICT (sha256) DO NOTHING")
+_INSERT_RUN = _insert("runs", (*START_COLUMNS, "owner"), " RETURNING run_id")
+_ASSIGN_RESULTS = ", ".join(f"{c.lower()} = %({c.lower()})s" for c in RESULT_COLUMNS)
+_UPDATE_RESULTS = f"UPDATE runs SET {_ASSIGN_RESULTS} WHERE run_id = %(run_id)s"
+_SELECT_OPEN_RUNS = "SELECT run_id, serial, owner FROM runs WHERE verdict IS NULL ORDER BY run_id"
+_FINISH_INTERRUPTED = (
+    "UPDATE runs SET verdict = %(verdict)s, reason = %(reason)s, finished_at = %(finished_at)s "
+    "WHERE run_id = %(run_id)s AND verdict IS NULL")
+_INSERT_LIMIT = _insert("limit_checks", LIMIT_COLUMNS)
+_INSERT_VERIFICATION = _insert("verifications", VERIFICATION_COLUMNS,
+                               " RETURNING verification_id")
+_SELECT_LIMITS = (f"SELECT {', '.join(c.lower() for c in LIMIT_COLUMNS)} FROM limit_checks "
+                  "WHERE run_id = ANY(%s) ORDER BY run_id, position")
+_CREATE_VERSIONS = (
+    "CREATE TABLE IF NOT EXISTS schema_migrations (version integer PRIMARY KEY, "
+    "name text NOT NULL, applied_at timestamptz NOT NULL DEFAULT now())")
+
+
+class PostgresStore:
+    """An open connection to a line's results database; close it (or use ``with``).
+
+    ``migrations``, ``owner`` and ``probe`` stand in for the shipped schema, this
+    process and this machine's process table, as in ``station.store.Store``.
+    """
+
+    def __init__(self, url: str, *, migrations: Traversable | None = None,
+                 owner: RunOwner | None = None, probe: ProcessProbe = probe_process) -> None:
+        self.url = url
+        self._owner = owner
+        self._probe = probe
+        self.interrupted: list[InterruptedRun] = []
+        source = migrations or files(MIGRATIONS_PACKAGE).joinpath(MIGRATIONS_FOLDER)
+        known = load_migrations(source)
+        try:
+            conn = psycopg.connect(url, connect_timeout=CONNECT_TIMEOUT_S, row_factory=_rows)
+        except psycopg.Error as exc:
+            raise self._error("cannot connect", exc) from exc
+        try:
+            self._prepare(conn, known)
+        except BaseException:
+            conn.close()
+            raise
+        self._conn: psycopg.Connection[dict[str, Any]] | None = conn
+
+    # -- lifetime --------------------------------------------------------------
+
+    @property
+    def location(self) -> str:
+        return describe(self.url)
+
+    @property
+    def closed(self) -> bool:
+        return self._conn is None
+
+    def close(self) -> None:
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            conn.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 traceback: TracebackType | None) -> None:
+        self.close()
+
+    @property
+    def schema_version(self) -> int:
+        with self._transaction("read the schema version") as conn:
+            return _version(conn)
+
+    # -- runs ------------------------------------------------------------------
+
+    def begin_run(self, run: Run, recipe_text: str) -> int:
+        """As ``Store.begin_run``: committed at once, with this process as its owner."""
+        if run.run_id is not None:
+            raise ValueError(f"run of {run.serial} already begun as run {run.run_id}")
+        recipe = recipe_values(run, recipe_text)
+        owner = self._owner if self._owner is not None else current_owner()
+        with self._transaction(f"begin a run of {run.serial}") as conn:
+            # Judged before this run exists and while no other station begins one.
+            conn.execute("SELECT pg_advisory_xact_lock(%s)", (_BEGIN_LOCK,))
+            gone = self._gone_owners(conn, owner)
+            conn.execute(_INSERT_RECIPE, recipe)
+            row = conn.execute(_INSERT_RUN, _sql_values(
+                {**start_values(run), "owner": owner.to_json()})).fetchone()
+            if row is None:  # pragma: no cover - RETURNING always gives the row
+                raise self._error("begin a run", None)
+            run_id = int(row["run_id"])
+            finished_at = utc_iso(datetime.now(UTC))
+            interrupted = []
+            for open_id, serial, open_owner, why in gone:
+                reason = interrupted_reason(open_owner, why, run_id)
+                conn.execute(_FINISH_INTERRUPTED, {
+                    "run_id": open_id, "verdict": Verdict.ABORTED.value, "reason": reason,
+                    "finished_at": finished_at})
+                interrupted.append(InterruptedRun(open_id, serial, open_owner, reason))
+        for found in interrupted:
+            log.warning("run %d of %s marked aborted: %s", found.run_id, found.serial,
+                        found.reason)
+        self.interrupted.extend(interrupted)
+        run.run_id = run_id
+        return run_id
+
+    def finish_run(self, run: Run) -> None:
+        """As ``Store.finish_run``: everything the run learnt, atomically and once."""
+        if run.run_id is None:
+            raise ValueError(f"run of {run.serial} was never begun")
+        if run.verdict is None or run.finished_at is None:
+            raise ValueError(
+                f"run {run.run_id}: a run is finished with its verdict and finishing time")
+        names = [check.name for check in run.limits]
+        if len(set(names)) != len(names):
+            raise ValueError(f"run {run.run_id}: a limit is checked twice in {names}")
+        values = _sql_values(result_values(run))
+        limits = [_sql_values(limit_values(run.run_id, i, check))
+                  for i, check in enumerate(run.limits)]
+        with held(), self._transaction(f"finish run {run.run_id}") as conn:
+            exists = conn.execute("SELECT 1 FROM runs WHERE run_id = %s", (run.run_id,))
+            if exists.fetchone() is None:
+                raise InputError(f"no run {run.run_id} in database {self.location}")
+            with conn.cursor() as cursor:
+                cursor.executemany(_INSERT_LIMIT, limits)
+            conn.execute(_UPDATE_RESULTS, values)
+
+    def get_run(self, run_id: int) -> Run:
+        runs = self._runs(f"read run {run_id}", "WHERE run_id = %s", (run_id,))
+        if not runs:
+            raise InputError(f"no run {run_id} in database {self.location}")
+        return runs[0]
+
+    def history(self, serial: str) -> list[Run]:
+        """Every run of one unit at every station of the line, oldest first."""
+        return self._runs(f"read the history of {serial}", "WHERE serial = %s ORDER BY run_id",
+                          (serial,))
+
+    def query(self, f: RunFilter) -> list[Run]:
+        clauses: list[str] = []
+        params: list[object] = []
+        for clause, value in (
+            ("serial = %s", f.serial),
+            ("started_at >= %s", f.since),
+            ("started_at <= %s", f.until),
+            ("recipe_name = %s", f.recipe),
+            ("verdict = %s", None if f.verdict is None else f.verdict.value),
+            ("station_id = %s", f.station_id),
+        ):
+            if value is not None:
+                clauses.append(clause)
+                params.append(value)
+        where = f"WHERE {' AND '.join(clauses)}" if clauses else ""
+        if f.limit is None:
+            return self._runs("query runs", f"{where} ORDER BY run_id", params)
+        newest = self._runs("query runs", f"{where} ORDER BY run_id DESC LIMIT %s",
+                            [*params, f.limit])
+        return newest[::-1]
+
+    def last_stored(self, serial: str) -> Run | None:
+        """The run whose trims the unit should hold, whichever station stored them."""
+        runs = self._runs(f"find the stored trims of {serial}",
+                          "WHERE serial = %s AND trims_stored ORDER BY run_id DESC LIMIT 1",
+                          (serial,))
+        return runs[0] if runs else None
+
+    def open_run_owner(self, run_id: int) -> RunOwner | None:
+        with self._transaction(f"read the owner of run {run_id}") as conn:
+            row = conn.execute("SELECT verdict, owner FROM runs WHERE run_id = %s",
+                               (run_id,)).fetchone()
+        if row is None:
+            raise InputError(f"no run {run_id} in database {self.location}")
+        return None if row["verdict"] is not None else RunOwner.from_json(row["owner"])
+
+    def recipe_text(self, sha256: str) -> str | None:
+        with self._transaction(f"read recipe {sha256}") as conn:
+            row = conn.execute("SELECT text FROM recipes WHERE sha256 = %s",
+                               (sha256,)).fetchone()
+        return None if row is None else str(row["text"])
+
+    # -- verifications ---------------------------------------------------------
+
+    def add_verification(self, v: VerificationRecord) -> int:
+        with held(), self._transaction(f"record a verification of {v.serial}") as conn:
+            row = conn.execute(_INSERT_VERIFICATION,
+                               _sql_values(verification_values(v))).fetchone()
+        if row is None:  # pragma: no cover - RETURNING always gives the row
+            raise self._error("record a verification", None)
+        return int(row["verification_id"])
+
+    def verifications(self, serial: str) -> list[VerificationRecord]:
+        with self._transaction(f"read the verifications of {serial}") as conn:
+            rows = conn.execute("SELECT * FROM verifications WHERE serial = %s "
+                                "ORDER BY verification_id", (serial,)).fetchall()
+        return [verification_from(row) for row in rows]
+
+    # -- plumbing --------------------------------------------------------------
+
+    def _error(self, doing: str, exc: BaseException | None) -> DatabaseError:
+        detail = "" if exc is None else f": {str(exc).strip()}"
+        return DatabaseError(self.location, f"{doing}{detail}")
+
+    def _prepare(self, conn: psycopg.Connection[dict[str, Any]],
+                 known: Sequence[Migration]) -> None:
+        """Apply the migrations this database lacks, each in one transaction, one station
+        at a time; a database written by newer software is refused untouched."""
+        newest = known[-1].number if known else 0
+        try:
+            with conn.transaction():
+                conn.execute("SELECT pg_advisory_xact_lock(%s)", (_MIGRATION_LOCK,))
+                conn.execute(_CREATE_VERSIONS)
+                version = _version(conn)
+                if version > newest:
+                    raise self._error(
+                        f"schema version {version} is newer than this software knows "
+                        f"({newest}); refusing it, install the newer station software", None)
+                for migration in known:
+                    if migration.number > version:
+                        with conn.transaction():
+                            conn.execute(migration.sql.encode("utf-8"))
+                            conn.execute("INSERT INTO schema_migrations (version, name) "
+                                         "VALUES (%s, %s)", (migration.number, migration.name))
+        except psycopg.Error as exc:
+            raise self._error("cannot prepare the schema (rolled back)", exc) from exc
+
+    def _gone_owners(self, conn: psycopg.Connection[dict[str, Any]], here: RunOwner
+                     ) -> list[tuple[int, str, RunOwner, str]]:
+        gone = []
+        for row in conn.execute(_SELECT_OPEN_RUNS).fetchall():
+            owner = RunOwner.from_json(row["owner"])
+            if owner is None:
+                continue
+            why = why_gone(owner, here, self._probe)
+            if why is not None:
+                gone.append((int(row["run_id"]), str(row["serial"]), owner, why))
+        return gone
+
+    @contextmanager
+    def _transaction(self, doing: str) -> Iterator[psycopg.Connection[dict[str, Any]]]:
+        """One transaction, rolled back on any error; psycopg's errors become ours."""
+        conn = self._conn
+        if conn is None:
+            raise self._error(f"cannot {doing}: the store is closed", None)
+        try:
+            with conn.transaction():
+                yield conn
+        except psycopg.Error as exc:
+            raise self._error(f"cannot {doing}", exc) from exc
+
+    def _runs(self, doing: str, tail: str, params: Sequence[object]) -> list[Run]:
+        with self._transaction(doing) as conn:
+            # One snapshot for the runs and their limit checks, whoever writes meanwhile.
+            conn.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ")
+            rows = conn.execute(f"SELECT * FROM runs {tail}", params).fetchall()
+            ids = [row["run_id"] for row in rows]
+            limits: dict[int, list[LimitCheck]] = {run_id: [] for run_id in ids}
+            if ids:
+                for row in conn.execute(_SELECT_LIMITS, (ids,)):
+                    limits[row["run_id"]].append(limit_from(row))
+        return [run_from(row, limits[row["run_id"]]) for row in rows]
+
+
+def _version(conn: psycopg.Connection[dict[str, Any]]) -> int:
+    row = conn.execute("SELECT coalesce(max(version), 0) AS version "
+                       "FROM schema_migrations").fetchone()
+    return 0 if row is None else int(row["version"])
