@@ -65,6 +65,7 @@ from station.service import (
     query,
     recalibrate,
     statistics,
+    sync,
     verify,
 )
 from station.signals import stop_on_signals
@@ -679,6 +680,30 @@ def stats_command(
     run_filter = _filter(since, until, recipe, None, station, None, None)
     docs = [stats_dict(s) for s in statistics(database_path(db), run_filter)]
     _emit(docs, as_json, human=stats_view(docs))
+
+
+@app.command("sync")
+def sync_command(
+    db: DbOption = None,
+    list_only: Annotated[bool, typer.Option(
+        "--list", help="Only show what waits in the spool; connect to nothing.")] = False,
+    as_json: JsonOption = False,
+) -> None:
+    """Forward the runs this station spooled while its line's database was out of reach,
+    oldest first, each once; show what was forwarded and what still waits."""
+    report = sync(database_path(db), list_only=list_only)
+    waiting = [run_dict(r) for r in report.waiting]
+    if as_json:
+        _emit({"line": report.line,
+               "forwarded": [{**run_dict(f.run), "line_run_id": f.line_run_id, "new": f.new}
+                             for f in report.forwarded],
+               "waiting": waiting}, True)
+        return
+    if report.forwarded:
+        stdout.print(runs_table([run_dict(f.run) for f in report.forwarded],
+                                f"forwarded to {report.line}"))
+    stdout.print(runs_table(waiting, "waiting in this station's spool") if waiting
+                 else f"nothing waits in this station's spool for {report.line}")
 
 
 @app.command("recipes")

@@ -125,6 +125,10 @@ class DatabaseError(StationError):
         self.database = database
 
 
+class DatabaseUnreachable(DatabaseError):
+    """A line's database server did not answer: the station records into its spool."""
+
+
 class DatabasePathError(DatabaseError):
     """The database path given cannot hold a database (unwritable, not a directory, ...).
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import replace
 from datetime import UTC, datetime
 from importlib.resources import files
 from importlib.resources.abc import Traversable
@@ -26,7 +27,7 @@ from uuid import UUID
 import psycopg
 from psycopg.rows import RowMaker
 
-from station.errors import DatabaseError, InputError
+from station.errors import DatabaseError, DatabaseUnreachable, InputError
 from station.rows import (
     LIMIT_COLUMNS,
     RESULT_COLUMNS,
@@ -142,6 +143,9 @@ class PostgresStore:
         known = load_migrations(source)
         try:
             conn = psycopg.connect(url, connect_timeout=CONNECT_TIMEOUT_S, row_factory=_rows)
+        except psycopg.OperationalError as exc:
+            raise DatabaseUnreachable(self.location, f"cannot connect: {str(exc).strip()}"
+                                      ) from exc
         except psycopg.Error as exc:
             raise self._error("cannot connect", exc) from exc
         try:
@@ -231,6 +235,42 @@ class PostgresStore:
             with conn.cursor() as cursor:
                 cursor.executemany(_INSERT_LIMIT, limits)
             conn.execute(_UPDATE_RESULTS, values)
+
+    def forward_run(self, run: Run, recipe_text: str, previous_uuid: UUID | None
+                    ) -> tuple[int, bool]:
+        """Record a finished run another database kept (a station's spool), once.
+
+        Keyed by the run's UUID: a run already here (forwarded before, its spool not told
+        so because the station stopped in between) is not recorded again. Its previous
+        run is found here by UUID too, the spool's own numbers meaning nothing here.
+        Returns this database's number for the run and whether it was new.
+        """
+        if run.run_uuid is None or run.verdict is None or run.finished_at is None:
+            raise ValueError(f"run of {run.serial}: only a finished run with a UUID is "
+                             "forwarded")
+        recipe = recipe_values(run, recipe_text)
+        with held(), self._transaction(f"forward a run of {run.serial}") as conn:
+            found = conn.execute("SELECT run_id FROM runs WHERE run_uuid = %s",
+                                 (run.run_uuid,)).fetchone()
+            if found is not None:
+                return int(found["run_id"]), False
+            previous = None if previous_uuid is None else conn.execute(
+                "SELECT run_id FROM runs WHERE run_uuid = %s", (previous_uuid,)).fetchone()
+            here = replace(run, previous_run_id=None if previous is None
+                           else int(previous["run_id"]))
+            conn.execute(_INSERT_RECIPE, recipe)
+            row = conn.execute(_INSERT_RUN, _sql_values(
+                {**start_values(here), "owner": None})).fetchone()
+            if row is None:  # pragma: no cover - RETURNING always gives the row
+                raise self._error("forward a run", None)
+            run_id = int(row["run_id"])
+            # As a finish: limit checks while the row is open, then its results.
+            with conn.cursor() as cursor:
+                cursor.executemany(_INSERT_LIMIT, [
+                    _sql_values(limit_values(run_id, i, check))
+                    for i, check in enumerate(here.limits)])
+            conn.execute(_UPDATE_RESULTS, _sql_values(result_values(replace(here, run_id=run_id))))
+        return run_id, True
 
     def get_run(self, run_id: int) -> Run:
         runs = self._runs(f"read run {run_id}", "WHERE run_id = %s", (run_id,))

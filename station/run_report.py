@@ -27,6 +27,7 @@ def run_dict(run: Run) -> dict[str, Any]:
     """The JSON document of one run (``calibrate``, ``history``, ``query``)."""
     return {
         "run_id": run.run_id,
+        "run_uuid": None if run.run_uuid is None else str(run.run_uuid),
         "serial": run.serial,
         "kind": run.kind.value,
         "verdict": run.verdict.value if run.verdict is not None else None,
@@ -64,7 +65,7 @@ CSV_COLUMNS: tuple[str, ...] = (
     "recipe", "recipe_version", "recipe_sha256", "station", "operator", "software_version",
     "bench", "offset_a_mA", "offset_b_mA", "gain_a", "gain_b",
     "h1_before", "h2_before", "h1_after", "h2_after", "failed_limits",
-    "recording", "recording_sha256", "service_reason",
+    "recording", "recording_sha256", "service_reason", "run_uuid",
 )
 """One flat row per run, for spreadsheets: trims are those stored in the drive."""
 

@@ -14,17 +14,24 @@ import getpass
 import logging
 import os
 import tempfile
-from collections.abc import Sequence
-from contextlib import ExitStack
+from collections.abc import Iterator, Sequence
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 from drivers.base import CalibrationRecord
 from station import __version__
 from station.benches import BenchSession, BenchSpec, open_bench
 from station.core import Trims
-from station.errors import IdentityMismatch, InputError, StationError
+from station.errors import (
+    DatabaseError,
+    DatabaseUnreachable,
+    IdentityMismatch,
+    InputError,
+    StationError,
+)
 from station.limits import drift, drift_warnings
 from station.paths import default_database, station_home
 from station.procedure import (
@@ -46,7 +53,21 @@ from station.recipes import (
 from station.rows import RunFilter, VerificationRecord
 from station.runs import LimitName, RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
-from station.storage import DbTarget, RunStore, is_url, open_store, target_of
+from station.storage import (
+    Backend,
+    DbTarget,
+    RunStore,
+    backend_of,
+    describe,
+    is_url,
+    open_store,
+    target_of,
+)
+from station.store import Store
+
+if TYPE_CHECKING:
+    from station.pgstore import PostgresStore
+    from station.spool import Forwarded
 
 log = logging.getLogger(__name__)
 
@@ -103,13 +124,51 @@ class Calibration:
         return drift(previous, self.run.trims_after)
 
 
+@contextmanager
+def _store_for_runs(station: Station) -> Iterator[tuple[RunStore, str | None]]:
+    """Where a run is recorded, and the warning it then carries (None: where it should be).
+
+    A station's own file, or its line's database. A line's database that does not
+    answer does not stop the line: the run goes into the station's spool, to be
+    forwarded when it answers again; one that answers first gets what the spool holds,
+    in order, so the line sees runs in the order they began.
+    """
+    target = station.db_path
+    if backend_of(target) is not Backend.POSTGRESQL:
+        with open_store(target) as store:
+            yield store, None
+        return
+    from station import spool  # noqa: PLC0415 - psycopg only for a line's database
+
+    try:
+        line = open_store(target)
+    except DatabaseUnreachable as exc:
+        path = spool.spool_path()
+        log.warning("%s: recording into this station's spool %s", exc, path)
+        with Store(path) as spooled:
+            yield spooled, (
+                f"recorded in this station's spool ({path}): the line's database "
+                f"{describe(target)} did not answer ({exc}); `station sync` forwards it")
+        return
+    with line:
+        if spool.spool_path().exists():
+            try:
+                with Store(spool.spool_path()) as spooled:
+                    spool.forward(spooled, cast("PostgresStore", line))
+            except DatabaseError as exc:  # the run goes on; the spool waits for the next one
+                log.warning("the spool was not forwarded: %s", exc)
+        yield line, None
+
+
 def calibrate(station: Station, serial_label: str, recipe_name: str | None = None,
               observer: Observer | None = None) -> Calibration:
     """Production calibration of one unit (``station calibrate``)."""
     serial = parse_serial(serial_label)
     recipe = load_recipe(recipe_name or DEFAULT_RECIPE)
-    with open_store(station.db_path) as store:
+    with _store_for_runs(station) as (store, spooled):
         run = _new_run(station, serial, recipe, RunKind.CALIBRATE)
+        if spooled is not None:
+            run.warnings.append(spooled)
         return Calibration(_execute(store, station, serial, recipe, run, observer=observer))
 
 
@@ -126,12 +185,16 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         raise InputError("--reason must say why the unit is recalibrated")
     # A named recipe is checked before the database is even opened (nothing done on error).
     chosen = load_recipe(recipe_name) if recipe_name is not None else None
-    with open_store(station.db_path) as store:
+    with _store_for_runs(station) as (store, spooled):
         previous = store.last_stored(serial.label)
         if previous is None and not force:
+            where = f"in the database {store.location}"
+            if spooled is not None:
+                where = (f"in this station's spool {store.location} (the line's database "
+                         f"{describe(station.db_path)} did not answer)")
             raise InputError(
-                f"{serial} has no recorded calibration at this station's database "
-                f"({store.location}); use --force to calibrate it anyway"
+                f"{serial} has no recorded calibration {where}; use --force to calibrate it "
+                "anyway"
             )
         if chosen is not None:
             recipe = chosen
@@ -140,6 +203,8 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         else:
             recipe = _recipe_of(store, previous)
         run = _new_run(station, serial, recipe, RunKind.RECALIBRATE)
+        if spooled is not None:
+            run.warnings.append(spooled)
         run.service_reason = reason.strip()
         run.previous_run_id = previous.run_id if previous is not None else None
         previous_trims = previous.trims_after if previous is not None else None
@@ -380,3 +445,31 @@ def _capabilities(runs: Sequence[Run]) -> dict[str, Capability]:
     return {key: capability(values[key], *recorded_bounds(runs, name))
             for key, name in _CAPABILITY_LIMITS.items()}
 
+
+
+# --- a spool's forwarding ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SyncReport:
+    """What ``station sync`` forwarded to the line's database, and what still waits."""
+
+    line: str
+    forwarded: list[Forwarded]
+    waiting: list[Run]
+
+
+def sync(db: DbTarget, *, list_only: bool = False) -> SyncReport:
+    """Forward this station's spool to its line's database (``station sync``), or only
+    list what waits (``--list``, which needs no connection)."""
+    if backend_of(db) is not Backend.POSTGRESQL:
+        raise InputError("station sync forwards this station's spool to its line's database: "
+                         "--db (or STATION_DB) must name it as a postgresql:// URL")
+    from station import spool  # noqa: PLC0415 - psycopg only for a line's database
+
+    if list_only or not spool.spool_path().exists():
+        return SyncReport(describe(db), [], spool.pending())
+    with open_store(db) as line, Store(spool.spool_path()) as spooled:
+        done = spool.forward(spooled, cast("PostgresStore", line))
+        waiting = spooled.unforwarded()
+    return SyncReport(describe(db), done, waiting)

@@ -523,6 +523,24 @@ class Store:
             row = conn.execute("SELECT text FROM recipes WHERE sha256 = ?", (sha256,)).fetchone()
         return None if row is None else str(row["text"])
 
+    # -- a spool's forwarding ---------------------------------------------------
+
+    def unforwarded(self) -> list[Run]:
+        """Finished runs not yet forwarded to a line's database, in the order they began
+        (a spool's backlog; an open run waits until it is finished)."""
+        return self._runs(
+            "read the runs to forward",
+            "WHERE verdict IS NOT NULL AND run_id NOT IN (SELECT run_id FROM forwarded) "
+            "ORDER BY run_id", ())
+
+    def mark_forwarded(self, run_id: int, destination: str, destination_run_id: int) -> None:
+        """Note, once, that ``run_id`` now lives at ``destination`` as its number there."""
+        with held(), self._transaction(f"note run {run_id} as forwarded", write=True) as conn:
+            conn.execute(
+                "INSERT INTO forwarded (run_id, forwarded_at, destination, destination_run_id) "
+                "VALUES (?, ?, ?, ?)",
+                (run_id, utc_iso(datetime.now(UTC)), destination, destination_run_id))
+
     # -- verifications ---------------------------------------------------------
 
     def add_verification(self, v: VerificationRecord) -> int:

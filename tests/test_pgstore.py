@@ -5,7 +5,6 @@ append-only rules enforced by the server, many stations at once."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import threading
 from collections.abc import Iterator
 from datetime import timedelta
@@ -14,16 +13,18 @@ from typing import Any
 
 import psycopg
 import pytest
-from typer.testing import CliRunner
 
-from station.cli import app
 from station.core import Trims
 from station.errors import DatabaseError
 from station.pgstore import PostgresStore
 from station.rows import RunFilter, VerificationRecord
 from station.runs import Run, Verdict
+from station.spool import forward, pending
 from station.storage import Backend, backend_of, describe, open_store, target_of
 from station.store import Store
+from tests.postgres import Cluster
+from tests.test_calibrate import LAST_STDERR
+from tests.test_calibrate import _run as _cli
 from tests.test_store import (
     DEAD_PID,
     HERE,
@@ -33,6 +34,7 @@ from tests.test_store import (
     _full_run,
     _owner,
     _process_table,
+    _recipe,
     _record,
     _run,
 )
@@ -169,7 +171,7 @@ def test_a_database_of_newer_software_is_refused_untouched(postgresql_url: str) 
 
 
 def test_an_unreachable_server_is_a_database_error_without_the_password(
-    postgresql_cluster: Any,
+    postgresql_cluster: Cluster,
 ) -> None:
     url = f"postgresql://qa:secret@127.0.0.1:{postgresql_cluster.port + 1}/line"
     with pytest.raises(DatabaseError) as caught:
@@ -188,22 +190,109 @@ def test_a_location_names_its_backend() -> None:
 
 
 def test_calibrate_history_and_stats_run_against_the_line_s_database(
-    postgresql_url: str, station_home: Path,
+    postgresql_url: str, station_home: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
-    runner = CliRunner()
-    done = runner.invoke(app, ["calibrate", "SN123", "--db", postgresql_url, "--json"])
-    assert done.exit_code == 0, done.output
-    doc = json.loads(done.stdout)
-    assert doc["verdict"] == "pass"
+    code, doc = _cli(["calibrate", "SN123", "--db", postgresql_url, "--json"], monkeypatch,
+                     capsys)
+    assert code == 0 and doc["verdict"] == "pass", LAST_STDERR[0]
     # The recording stays on the station's disk; the record holds its hash.
     recording = Path(doc["recording"])
     assert recording.is_file() and station_home in recording.parents
-    history = runner.invoke(app, ["history", "SN123", "--db", postgresql_url, "--json"])
-    assert history.exit_code == 0, history.output
-    (run,) = json.loads(history.stdout)
+    code, runs = _cli(["history", "SN123", "--db", postgresql_url, "--json"], monkeypatch,
+                      capsys)
+    assert code == 0, LAST_STDERR[0]
+    (run,) = runs
     assert run["verdict"] == "pass" and run["recording_sha256"] == doc["recording_sha256"]
-    stats = runner.invoke(app, ["stats", "--db", postgresql_url, "--json"])
-    assert stats.exit_code == 0, stats.output
+    code, stats = _cli(["stats", "--db", postgresql_url, "--json"], monkeypatch, capsys)
+    assert code == 0 and stats[0]["runs"] == 1, LAST_STDERR[0]
     with PostgresStore(postgresql_url) as store:
         (stored,) = store.history("SN123")
     assert isinstance(stored, Run) and stored.trims_stored
+
+
+# -- a station whose line database does not answer --------------------------------------
+
+
+def _dead_url(cluster: Cluster) -> str:
+    """A line database nobody answers for (the cluster's port plus one, on loopback)."""
+    return f"postgresql://station:pw@127.0.0.1:{cluster.port + 1}/line"
+
+
+def test_a_station_that_cannot_reach_its_line_spools_and_sync_forwards_once(
+    postgresql_cluster: Cluster, postgresql_url: str, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    def cli(*args: str) -> tuple[int, Any]:
+        return _cli(list(args), monkeypatch, capsys)
+
+    dead = _dead_url(postgresql_cluster)
+    code, first = cli("calibrate", "SN123", "--db", dead, "--json")
+    assert code == 0 and first["verdict"] == "pass", LAST_STDERR[0]
+    assert any("recorded in this station's spool" in w and ":pw@" not in w
+               for w in first["warnings"])
+    # Field service at the same station while the line is still away: the spool has it.
+    code, _ = cli("recalibrate", "SN123", "--reason", "noisy", "--db", dead, "--json")
+    assert code == 0, LAST_STDERR[0]
+    assert len(pending()) == 2
+    code, listed = cli("sync", "--list", "--db", postgresql_url, "--json")
+    assert code == 0 and [r["kind"] for r in listed["waiting"]] == ["calibrate", "recalibrate"]
+    # The line unreachable: sync says so (exit 3) and forwards nothing.
+    code, _ = cli("sync", "--db", dead, "--json")
+    assert code == 3 and "cannot connect" in LAST_STDERR[0] and len(pending()) == 2
+
+    code, report = cli("sync", "--db", postgresql_url, "--json")
+    assert code == 0, LAST_STDERR[0]
+    assert [f["new"] for f in report["forwarded"]] == [True, True] and report["waiting"] == []
+    with PostgresStore(postgresql_url) as line:
+        calibration, service = line.history("SN123")
+    assert (calibration.kind.value, service.kind.value) == ("calibrate", "recalibrate")
+    assert service.previous_run_id == calibration.run_id  # found again by its UUID
+    assert str(calibration.run_uuid) == report["forwarded"][0]["run_uuid"]
+    # A second sync forwards nothing.
+    code, twice = cli("sync", "--db", postgresql_url, "--json")
+    assert code == 0 and twice["forwarded"] == []
+    with PostgresStore(postgresql_url) as line:
+        assert len(line.history("SN123")) == 2
+
+
+def test_a_run_forwarded_before_its_station_stopped_is_not_forwarded_again(
+    postgresql_url: str, tmp_path: Path,
+) -> None:
+    with Store(tmp_path / "spool.db") as spooled:
+        _record(spooled, _run("SN1"))
+        (run,) = spooled.unforwarded()
+        with PostgresStore(postgresql_url) as line:
+            # The line committed it; the station stopped before noting so in its spool.
+            line_id, new = line.forward_run(run, _recipe_text(), None)
+            assert new
+            (again,) = forward(spooled, line)
+            assert again.line_run_id == line_id and not again.new
+            assert len(line.history("SN1")) == 1
+        assert spooled.unforwarded() == []
+
+
+def test_the_next_calibration_with_the_line_back_forwards_the_spool_first(
+    postgresql_cluster: Cluster, postgresql_url: str, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code, _ = _cli(["calibrate", "SN123", "--db", _dead_url(postgresql_cluster), "--json"],
+                   monkeypatch, capsys)
+    assert code == 0, LAST_STDERR[0]
+    code, _ = _cli(["calibrate", "SN124", "--db", postgresql_url, "--json"], monkeypatch,
+                   capsys)
+    assert code == 0, LAST_STDERR[0]
+    with PostgresStore(postgresql_url) as line:
+        runs = line.query(RunFilter())
+    assert [r.serial for r in runs] == ["SN123", "SN124"]  # in the order they began
+    assert pending() == []
+
+
+def test_sync_needs_a_line_database(monkeypatch: pytest.MonkeyPatch,
+                                    capsys: pytest.CaptureFixture[str]) -> None:
+    code, _ = _cli(["sync", "--db", "station.db"], monkeypatch, capsys)
+    assert code == 2 and "postgresql://" in LAST_STDERR[0]
+
+
+def _recipe_text() -> str:
+    return _recipe()[1]

@@ -1,0 +1,74 @@
+"""Runs a station recorded while its line's database was out of reach, and forwarding them.
+
+A station set to a line's PostgreSQL (``--db postgresql://…``) that cannot reach it does
+not stop the line: it records the run into a SQLite spool of its own
+(``$STATION_HOME/spool.db``, the station's usual schema) and says so in the run's
+warnings. Once the server answers again, the next calibration, or ``station sync``,
+forwards the spool's finished runs in the order they began, each exactly once: the line
+knows a run by its UUID and refuses a second copy, and the spool notes each run it
+forwarded (``db/0004_forwarded.sql``), so a station stopped half-way forwards the rest
+the next time and nothing twice.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from uuid import UUID
+
+from station.paths import station_home
+from station.pgstore import PostgresStore
+from station.runs import Run
+from station.store import Store
+
+log = logging.getLogger(__name__)
+
+SPOOL_FILE = "spool.db"
+
+
+def spool_path() -> Path:
+    """Where this station keeps the runs its line's database has not seen yet."""
+    return station_home() / SPOOL_FILE
+
+
+@dataclass(frozen=True)
+class Forwarded:
+    """One spooled run, now in the line's database."""
+
+    run: Run  # as the spool recorded it
+    line_run_id: int  # its number in the line's database
+    new: bool  # False: the line had it already (forwarded before the spool noted it)
+
+
+def forward(spool: Store, line: PostgresStore) -> list[Forwarded]:
+    """Forward every finished run the spool holds and the line has not seen, oldest first;
+    each noted in the spool as soon as the line has committed it."""
+    done: list[Forwarded] = []
+    for run in spool.unforwarded():
+        assert run.run_id is not None  # read back from the spool
+        text = spool.recipe_text(run.recipe.sha256)
+        if text is None:  # the schema's foreign key keeps every run's recipe
+            raise ValueError(f"spool run {run.run_id}: its recipe text is missing")
+        line_id, new = line.forward_run(run, text, _previous_uuid(spool, run))
+        spool.mark_forwarded(run.run_id, line.location, line_id)
+        log.info("spooled run %d of %s forwarded as run %d of %s%s", run.run_id, run.serial,
+                 line_id, line.location, "" if new else " (it was there already)")
+        done.append(Forwarded(run, line_id, new))
+    return done
+
+
+def _previous_uuid(spool: Store, run: Run) -> UUID | None:
+    """The UUID of the run a recalibration followed, which the line knows it by."""
+    if run.previous_run_id is None:
+        return None
+    return spool.get_run(run.previous_run_id).run_uuid
+
+
+def pending(spool_file: Path | None = None) -> list[Run]:
+    """The spool's runs not yet forwarded (none without a spool)."""
+    path = spool_file or spool_path()
+    if not path.exists():
+        return []
+    with Store(path) as spool:
+        return spool.unforwarded()
