@@ -595,15 +595,20 @@ def _output(output: OutputFormat, as_json: bool) -> OutputFormat:
     return OutputFormat.JSON if as_json else output
 
 
+StationFilter = Annotated[int | None, typer.Option("--station", help="Station ID.")]
+
+
 @app.command("history")
 def history_command(
     serial: Annotated[str, typer.Argument(help="Serial label of the unit, e.g. SN123.")],
+    station: StationFilter = None,
     db: DbOption = None,
     output: FormatOption = OutputFormat.TABLE,
     as_json: JsonOption = False,
 ) -> None:
-    """Every run of one unit, oldest first."""
-    runs = history(database_path(db), serial)
+    """Every run of one unit, oldest first (on a line's database: at every station, or
+    at one with --station)."""
+    runs = history(database_path(db), serial, station_id=station)
     _print_runs(runs, _output(output, as_json), f"history of {parse_serial(serial)}",
                 one_unit=True)
 
@@ -629,7 +634,6 @@ UntilOption = Annotated[
 ]
 RecipeFilter = Annotated[str | None, typer.Option("--recipe", help="Recipe name.")]
 VerdictFilter = Annotated[Verdict | None, typer.Option("--verdict", help="Verdict.")]
-StationFilter = Annotated[int | None, typer.Option("--station", help="Station ID.")]
 SerialFilter = Annotated[str | None, typer.Option("--serial", help="One unit.")]
 LimitOption = Annotated[
     int | None, typer.Option("--limit", help="Only the newest N runs.", min=0)

@@ -364,10 +364,14 @@ def verify(station: Station, serial_label: str) -> Verification:
 # --- QA ---------------------------------------------------------------------------------------
 
 
-def history(db_path: DbTarget, serial_label: str) -> list[Run]:
+def history(db_path: DbTarget, serial_label: str, *, station_id: int | None = None
+            ) -> list[Run]:
+    """Every run of one unit, oldest first; only those of one station with ``station_id``."""
     serial = parse_serial(serial_label)
     with open_store(db_path) as store:
-        return store.history(serial.label)
+        if station_id is None:
+            return store.history(serial.label)
+        return store.query(RunFilter(serial=serial.label, station_id=station_id))
 
 
 def query(db_path: DbTarget, run_filter: RunFilter) -> list[Run]:

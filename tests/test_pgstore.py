@@ -19,6 +19,7 @@ from station.errors import DatabaseError
 from station.pgstore import PostgresStore
 from station.rows import RunFilter, VerificationRecord
 from station.runs import Run, Verdict
+from station.service import history
 from station.spool import forward, pending
 from station.storage import Backend, backend_of, describe, open_store, target_of
 from station.store import Store
@@ -102,7 +103,9 @@ def test_a_run_forwarded_twice_is_recorded_once(pg: PostgresStore) -> None:
     assert len(pg.history("SN1")) == 1
 
 
-def test_qa_sees_the_whole_line_and_filters_it_by_station(pg: PostgresStore) -> None:
+def test_qa_sees_the_whole_line_and_filters_it_by_station(
+    pg: PostgresStore, postgresql_url: str,
+) -> None:
     for i, (serial, station) in enumerate((("SN1", 1), ("SN2", 2), ("SN1", 2), ("SN3", 3))):
         _record(pg, _run(serial, station_id=station, started_at=T0 + timedelta(hours=i)),
                 Verdict.FAIL if serial == "SN3" else Verdict.PASS)
@@ -114,6 +117,8 @@ def test_qa_sees_the_whole_line_and_filters_it_by_station(pg: PostgresStore) -> 
     assert [r.serial for r in pg.query(RunFilter(limit=2))] == ["SN1", "SN3"]
     last = pg.last_stored("SN1")
     assert last is not None and last.station_id == 2  # recalibrated elsewhere: found here
+    assert [r.station_id for r in history(postgresql_url, "SN1")] == [1, 2]
+    assert [r.station_id for r in history(postgresql_url, "SN1", station_id=2)] == [2]
 
 
 def test_a_run_whose_station_process_died_is_finished_as_aborted_by_the_next(
