@@ -35,6 +35,7 @@ from station.rows import (
     VERIFICATION_COLUMNS,
     RunFilter,
     VerificationRecord,
+    filter_clauses,
     limit_from,
     limit_values,
     recipe_values,
@@ -54,10 +55,10 @@ from station.store import (
     ProcessProbe,
     RunOwner,
     current_owner,
+    gone_owners,
     interrupted_reason,
     load_migrations,
     probe_process,
-    why_gone,
 )
 
 log = logging.getLogger(__name__)
@@ -193,7 +194,8 @@ class PostgresStore:
         with self._transaction(f"begin a run of {run.serial}") as conn:
             # Judged before this run exists and while no other station begins one.
             conn.execute("SELECT pg_advisory_xact_lock(%s)", (_BEGIN_LOCK,))
-            gone = self._gone_owners(conn, owner)
+            gone = gone_owners(conn.execute(_SELECT_OPEN_RUNS).fetchall(), owner,
+                               self._probe)
             conn.execute(_INSERT_RECIPE, recipe)
             row = conn.execute(_INSERT_RUN, _sql_values(
                 {**start_values(run), "owner": owner.to_json()})).fetchone()
@@ -284,20 +286,7 @@ class PostgresStore:
                           (serial,))
 
     def query(self, f: RunFilter) -> list[Run]:
-        clauses: list[str] = []
-        params: list[object] = []
-        for clause, value in (
-            ("serial = %s", f.serial),
-            ("started_at >= %s", f.since),
-            ("started_at <= %s", f.until),
-            ("recipe_name = %s", f.recipe),
-            ("verdict = %s", None if f.verdict is None else f.verdict.value),
-            ("station_id = %s", f.station_id),
-        ):
-            if value is not None:
-                clauses.append(clause)
-                params.append(value)
-        where = f"WHERE {' AND '.join(clauses)}" if clauses else ""
+        where, params = filter_clauses(f, "%s")
         if f.limit is None:
             return self._runs("query runs", f"{where} ORDER BY run_id", params)
         newest = self._runs("query runs", f"{where} ORDER BY run_id DESC LIMIT %s",
@@ -369,18 +358,6 @@ class PostgresStore:
                                          "VALUES (%s, %s)", (migration.number, migration.name))
         except psycopg.Error as exc:
             raise self._error("cannot prepare the schema (rolled back)", exc) from exc
-
-    def _gone_owners(self, conn: psycopg.Connection[dict[str, Any]], here: RunOwner
-                     ) -> list[tuple[int, str, RunOwner, str]]:
-        gone = []
-        for row in conn.execute(_SELECT_OPEN_RUNS).fetchall():
-            owner = RunOwner.from_json(row["owner"])
-            if owner is None:
-                continue
-            why = why_gone(owner, here, self._probe)
-            if why is not None:
-                gone.append((int(row["run_id"]), str(row["serial"]), owner, why))
-        return gone
 
     @contextmanager
     def _transaction(self, doing: str) -> Iterator[psycopg.Connection[dict[str, Any]]]:

@@ -325,3 +325,23 @@ def recipe_values(run: Run, recipe_text: str) -> dict[str, object]:
         )
     return {"sha256": digest, "name": run.recipe.name, "version": run.recipe.version,
             "text": recipe_text, "first_used_at": utc_iso(run.started_at)}
+
+
+def filter_clauses(f: RunFilter, mark: str) -> tuple[str, list[object]]:
+    """The WHERE clause (or nothing) of a QA filter, with ``mark`` as the placeholder of
+    the backend's driver (``?``, ``%s``), and its parameters: QA's question is asked of
+    every database in the same words."""
+    clauses: list[str] = []
+    params: list[object] = []
+    for column, op, value in (
+        ("serial", "=", f.serial),
+        ("started_at", ">=", None if f.since is None else utc_iso(f.since)),
+        ("started_at", "<=", None if f.until is None else utc_iso(f.until)),
+        ("recipe_name", "=", f.recipe),
+        ("verdict", "=", None if f.verdict is None else f.verdict.value),
+        ("station_id", "=", f.station_id),
+    ):
+        if value is not None:
+            clauses.append(f"{column} {op} {mark}")
+            params.append(value)
+    return (f"WHERE {' AND '.join(clauses)}" if clauses else ""), params

@@ -26,7 +26,7 @@ import re
 import socket
 import sqlite3
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -34,7 +34,7 @@ from importlib.resources import files
 from importlib.resources.abc import Traversable
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import Any, Self
 
 from station.errors import DatabaseError, DatabasePathError, InputError
 from station.rows import (
@@ -44,6 +44,7 @@ from station.rows import (
     VERIFICATION_COLUMNS,
     RunFilter,
     VerificationRecord,
+    filter_clauses,
     limit_from,
     limit_values,
     recipe_values,
@@ -313,6 +314,23 @@ def interrupted_reason(owner: RunOwner, why: str, found_at_run: int) -> str:
     )
 
 
+def gone_owners(open_runs: Iterable[Mapping[str, Any]], here: RunOwner, probe: ProcessProbe
+                ) -> list[tuple[int, str, RunOwner, str]]:
+    """Of the open runs (rows with run_id, serial, owner), those whose owner process is
+    provably gone, seen from ``here``: (run_id, serial, owner, why). Open runs without an
+    owner (begun before migration 0002) are left alone: nothing proves their station
+    stopped."""
+    gone = []
+    for row in open_runs:
+        owner = RunOwner.from_json(row["owner"])
+        if owner is None:
+            continue
+        why = why_gone(owner, here, probe)
+        if why is not None:
+            gone.append((int(row["run_id"]), str(row["serial"]), owner, why))
+    return gone
+
+
 # -- the store ----------------------------------------------------------------------
 
 # sqlite3 primary result codes that mean "this path cannot hold a database here",
@@ -414,7 +432,7 @@ class Store:
         with self._transaction(f"begin a run of {run.serial}", write=True) as conn:
             # Judged before this run exists, under the write lock, so no other station
             # can begin or finish a run in between.
-            gone = self._gone_owners(conn, owner)
+            gone = gone_owners(conn.execute(_SELECT_OPEN_RUNS).fetchall(), owner, self._probe)
             conn.execute(_INSERT_RECIPE, recipe)
             run_id = conn.execute(
                 _INSERT_RUN, {**start_values(run), "owner": owner.to_json()}
@@ -478,20 +496,7 @@ class Store:
         )
 
     def query(self, f: RunFilter) -> list[Run]:
-        clauses: list[str] = []
-        params: list[object] = []
-        for clause, value in (
-            ("serial = ?", f.serial),
-            ("started_at >= ?", None if f.since is None else utc_iso(f.since)),
-            ("started_at <= ?", None if f.until is None else utc_iso(f.until)),
-            ("recipe_name = ?", f.recipe),
-            ("verdict = ?", None if f.verdict is None else f.verdict.value),
-            ("station_id = ?", f.station_id),
-        ):
-            if value is not None:
-                clauses.append(clause)
-                params.append(value)
-        where = f"WHERE {' AND '.join(clauses)}" if clauses else ""
+        where, params = filter_clauses(f, "?")
         if f.limit is None:
             return self._runs("query runs", f"{where} ORDER BY run_id", params)
         # The newest come first out of SQLite (so LIMIT keeps them), then back in order.
@@ -615,24 +620,6 @@ class Store:
                     raise self._path_error("the file is not readable and writable")
         except OSError as exc:  # stat itself refused, e.g. a folder that cannot be searched
             raise self._path_error(exc.strerror or str(exc)) from exc
-
-    def _gone_owners(
-        self, conn: sqlite3.Connection, here: RunOwner
-    ) -> list[tuple[int, str, RunOwner, str]]:
-        """The open runs whose owner process is provably gone: (run_id, serial, owner, why).
-
-        Open runs without an owner (begun before migration 0002) are left
-        alone: nothing proves their station stopped.
-        """
-        gone = []
-        for row in conn.execute(_SELECT_OPEN_RUNS).fetchall():
-            owner = RunOwner.from_json(row["owner"])
-            if owner is None:
-                continue
-            why = why_gone(owner, here, self._probe)
-            if why is not None:
-                gone.append((int(row["run_id"]), str(row["serial"]), owner, why))
-        return gone
 
     def _prepare(self, conn: sqlite3.Connection, known: Sequence[Migration]) -> None:
         conn.row_factory = sqlite3.Row
