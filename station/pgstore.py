@@ -35,6 +35,7 @@ from station.rows import (
     VERIFICATION_COLUMNS,
     RunFilter,
     VerificationRecord,
+    check_finishable,
     filter_clauses,
     limit_from,
     limit_values,
@@ -219,14 +220,8 @@ class PostgresStore:
 
     def finish_run(self, run: Run) -> None:
         """As ``Store.finish_run``: everything the run learnt, atomically and once."""
-        if run.run_id is None:
-            raise ValueError(f"run of {run.serial} was never begun")
-        if run.verdict is None or run.finished_at is None:
-            raise ValueError(
-                f"run {run.run_id}: a run is finished with its verdict and finishing time")
-        names = [check.name for check in run.limits]
-        if len(set(names)) != len(names):
-            raise ValueError(f"run {run.run_id}: a limit is checked twice in {names}")
+        check_finishable(run)
+        assert run.run_id is not None  # checked
         values = _sql_values(result_values(run))
         limits = [_sql_values(limit_values(run.run_id, i, check))
                   for i, check in enumerate(run.limits)]

@@ -345,3 +345,17 @@ def filter_clauses(f: RunFilter, mark: str) -> tuple[str, list[object]]:
             clauses.append(f"{column} {op} {mark}")
             params.append(value)
     return (f"WHERE {' AND '.join(clauses)}" if clauses else ""), params
+
+
+def check_finishable(run: Run) -> None:
+    """Refuse (ValueError) a run no store may finish: never begun, without its verdict and
+    finishing time (a run still going has nothing to finish), or judged twice on a limit."""
+    if run.run_id is None:
+        raise ValueError(f"run of {run.serial} was never begun")
+    if run.verdict is None or run.finished_at is None:
+        raise ValueError(
+            f"run {run.run_id}: a run is finished with its verdict and finishing time"
+        )
+    names = [check.name for check in run.limits]
+    if len(set(names)) != len(names):
+        raise ValueError(f"run {run.run_id}: a limit is checked twice in {names}")

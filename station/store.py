@@ -44,6 +44,7 @@ from station.rows import (
     VERIFICATION_COLUMNS,
     RunFilter,
     VerificationRecord,
+    check_finishable,
     filter_clauses,
     limit_from,
     limit_values,
@@ -463,15 +464,8 @@ class Store:
         changes behind its back. Hence a verdict and a finishing time are
         required; a run that is still going has nothing to finish.
         """
-        if run.run_id is None:
-            raise ValueError(f"run of {run.serial} was never begun")
-        if run.verdict is None or run.finished_at is None:
-            raise ValueError(
-                f"run {run.run_id}: a run is finished with its verdict and finishing time"
-            )
-        names = [check.name for check in run.limits]
-        if len(set(names)) != len(names):
-            raise ValueError(f"run {run.run_id}: a limit is checked twice in {names}")
+        check_finishable(run)
+        assert run.run_id is not None  # checked
         values = result_values(run)
         limits = [limit_values(run.run_id, i, check) for i, check in enumerate(run.limits)]
         # held(): a stop signal arriving now waits for the commit, so the run is recorded whole.
