@@ -20,6 +20,7 @@ import logging
 import sys
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import replace
 from datetime import UTC, datetime, time
 from enum import StrEnum
 from pathlib import Path
@@ -704,8 +705,9 @@ def sync_command(
                "waiting": waiting}, True)
         return
     if report.forwarded:
-        stdout.print(runs_table([run_dict(f.run) for f in report.forwarded],
-                                f"forwarded to {report.line}"))
+        # Numbered as the line now numbers them: the spool's numbers mean nothing there.
+        stdout.print(runs_table([run_dict(replace(f.run, run_id=f.line_run_id))
+                                 for f in report.forwarded], f"forwarded to {report.line}"))
     stdout.print(runs_table(waiting, "waiting in this station's spool") if waiting
                  else f"nothing waits in this station's spool for {report.line}")
 

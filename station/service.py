@@ -144,11 +144,11 @@ def _store_for_runs(station: Station) -> Iterator[tuple[RunStore, str | None]]:
         line = open_store(target)
     except DatabaseUnreachable as exc:
         path = spool.spool_path()
-        log.warning("%s: recording into this station's spool %s", exc, path)
+        why = " ".join(str(exc).split())  # the driver's message spans lines
+        log.warning("%s: recording into this station's spool %s", why, path)
         with Store(path) as spooled:
-            yield spooled, (
-                f"recorded in this station's spool ({path}): the line's database "
-                f"{describe(target)} did not answer ({exc}); `station sync` forwards it")
+            yield spooled, (f"recorded in this station's spool ({path}) because {why}; "
+                            "`station sync` forwards it")
         return
     with line:
         if spool.spool_path().exists():

@@ -5,6 +5,8 @@ append-only rules enforced by the server, many stations at once."""
 from __future__ import annotations
 
 import dataclasses
+import re
+import sys
 import threading
 from collections.abc import Iterator
 from datetime import timedelta
@@ -14,6 +16,7 @@ from typing import Any
 import psycopg
 import pytest
 
+from station.cli import main
 from station.core import Trims
 from station.errors import DatabaseError
 from station.pgstore import PostgresStore
@@ -301,3 +304,22 @@ def test_sync_needs_a_line_database(monkeypatch: pytest.MonkeyPatch,
 
 def _recipe_text() -> str:
     return _recipe()[1]
+
+
+def test_sync_shows_forwarded_runs_under_the_line_s_numbers(
+    postgresql_cluster: Cluster, postgresql_url: str, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    with PostgresStore(postgresql_url) as line:
+        _record(line, _run("SN9"))  # the line's run 1, from another station
+    code, spooled = _cli(["calibrate", "SN123", "--db", _dead_url(postgresql_cluster),
+                          "--json"], monkeypatch, capsys)
+    assert code == 0 and spooled["run_id"] == 1, LAST_STDERR[0]
+    warning = next(w for w in spooled["warnings"] if "spool" in w)
+    assert "\n" not in warning and warning.count("postgresql://station@127.0.0.1") == 1
+    monkeypatch.setattr(sys, "argv", ["station", "sync", "--db", postgresql_url])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    assert stop.value.code in (0, None)
+    table = capsys.readouterr().out
+    assert re.search(r"^\s*2\s+\d{4}-\d\d-\d\d\s+SN123\s+pass", table, re.MULTILINE), table
