@@ -28,6 +28,16 @@ import psycopg
 from psycopg.rows import RowMaker
 
 from station.errors import DatabaseError, DatabaseUnreachable, InputError
+from station.migrations import MIGRATIONS_PACKAGE, Migration, load_migrations
+from station.owners import (
+    InterruptedRun,
+    ProcessProbe,
+    RunOwner,
+    current_owner,
+    gone_owners,
+    interrupted_reason,
+    probe_process,
+)
 from station.rows import (
     LIMIT_COLUMNS,
     RESULT_COLUMNS,
@@ -49,18 +59,6 @@ from station.rows import (
 from station.runs import LimitCheck, Run, Verdict, utc_iso
 from station.signals import held
 from station.storage import describe
-from station.store import (
-    MIGRATIONS_PACKAGE,
-    InterruptedRun,
-    Migration,
-    ProcessProbe,
-    RunOwner,
-    current_owner,
-    gone_owners,
-    interrupted_reason,
-    load_migrations,
-    probe_process,
-)
 
 log = logging.getLogger(__name__)
 

@@ -19,9 +19,9 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Final, Protocol, Self
 
 if TYPE_CHECKING:
+    from station.owners import InterruptedRun, RunOwner
     from station.rows import RunFilter, VerificationRecord
     from station.runs import Run
-    from station.store import InterruptedRun, RunOwner
 
 DbTarget = Path | str
 """A SQLite file's path, or a PostgreSQL URL (text starting ``postgresql://``)."""

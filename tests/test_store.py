@@ -26,6 +26,8 @@ import pytest
 
 from station.core import Trims
 from station.errors import DatabaseError, DatabasePathError, ExitCode, InputError
+from station.migrations import MIGRATIONS_PACKAGE, load_migrations
+from station.owners import ProcessInfo, RunOwner, current_owner, probe_process, why_gone
 from station.rows import RunFilter, VerificationRecord
 from station.runs import (
     LimitCheck,
@@ -38,16 +40,7 @@ from station.runs import (
     utc_iso,
 )
 from station.storage import RunStore
-from station.store import (
-    MIGRATIONS_PACKAGE,
-    ProcessInfo,
-    RunOwner,
-    Store,
-    current_owner,
-    load_migrations,
-    probe_process,
-    why_gone,
-)
+from station.store import Store
 
 T0 = datetime(2025, 3, 1, 8, 0, 0, 123456, tzinfo=UTC)
 
