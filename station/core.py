@@ -26,6 +26,16 @@ GAIN_LIMITS = (5000, 15000)
 """The drive accepts phase gains in 5000..15000 (ICD.md §2, 0x2100:03/04)."""
 
 
+class Method(StrEnum):
+    """How trims are estimated, in one word for the recipe that asks, the result that
+    reports it and the analysis that redoes it: the paper's parabolas of |H1|² and |H2|²
+    against each trim (also what a drive without its angle allows), or the phase-coherent
+    affine maps of both harmonics around the latest estimate."""
+
+    PAPER = "paper"
+    COHERENT = "coherent"
+
+
 def offset_limit_mA(rated_current_mA: int) -> int:
     """The drive accepts offsets within ±rated/2 (ICD.md §2, 0x2100:01/02), in whole mA."""
     return rated_current_mA // 2

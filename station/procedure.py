@@ -35,7 +35,6 @@ from drivers.base import CalibrationRecord, Drive
 from station import __version__
 from station.analysis.estimate import (
     CLIPPED_NOTE,
-    Method,
     ParabolaFit,
     TrimAxis,
     TrimEstimate,
@@ -54,7 +53,7 @@ from station.analysis.timeline import Timeline
 from station.benches import BenchSession, BenchSpec, open_bench
 from station.capture import FrameCapture
 from station.commands import CommandLog, LoggedDrive
-from station.core import GAIN_UNITY, Trims
+from station.core import GAIN_UNITY, Method, Trims
 from station.designs import (
     axis_sweep,
     gain_sweep,

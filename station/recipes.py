@@ -17,7 +17,6 @@ import re
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
-from enum import StrEnum
 from importlib.resources import files
 from pathlib import Path
 from typing import Final
@@ -27,6 +26,7 @@ from station.core import (
     GAIN_UNITY,
     SENSOR_RANGES_G,
     STANDARD_GRAVITY,
+    Method,
     offset_limit_mA,
 )
 from station.errors import InputError
@@ -58,14 +58,6 @@ class RecipeError(InputError):
         self.source = source
         self.problems = tuple(problems)
         super().__init__("\n".join(f"{source}: {problem}" for problem in self.problems))
-
-
-class RecipeMethod(StrEnum):
-    """How the trims are estimated: the paper's three parabola sweeps, or the
-    phase-coherent affine fit of both harmonics around the latest estimate."""
-
-    PAPER = "paper"
-    COHERENT = "coherent"
 
 
 @dataclass(frozen=True)
@@ -205,7 +197,7 @@ class Recipe:
     name: str
     version: str
     description: str
-    method: RecipeMethod
+    method: Method
     product: Product
     motion: Motion
     sweep: PaperSweep | CoherentSweep
@@ -355,13 +347,13 @@ def _read_magnitude_sweep(t: TomlTable | None, rated: int | None) -> MagnitudeSw
 
 
 def _read_sweep(
-    t: TomlTable, method: RecipeMethod | None, rated: int | None
+    t: TomlTable, method: Method | None, rated: int | None
 ) -> PaperSweep | CoherentSweep:
     sweep: PaperSweep | CoherentSweep
-    if method is RecipeMethod.PAPER:
+    if method is Method.PAPER:
         sweep = _read_paper_sweep(t, rated)
         other = _keys(CoherentSweep)
-    elif method is RecipeMethod.COHERENT:
+    elif method is Method.COHERENT:
         sweep = _read_coherent_sweep(t, rated)
         other = _keys(PaperSweep)
     else:
@@ -463,7 +455,7 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
         root.problem("name", f"{name!r} must equal the file's name {expected_name!r}")
     version = root.string("version", pattern=_VERSION)
     description = root.string("description")
-    method = root.choice("method", RecipeMethod)
+    method = root.choice("method", Method)
 
     # Product first: the drive's ranges in the other tables follow from its
     # rated current, and only a valid one may bound them.

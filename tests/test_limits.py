@@ -12,14 +12,13 @@ import pytest
 from station.analysis.estimate import (
     AffineFit,
     FitQuality,
-    Method,
     ParabolaFit,
     Term,
     TrimAxis,
     TrimEstimate,
     TrimSigma,
 )
-from station.core import Trims
+from station.core import Method, Trims
 from station.limits import (
     drift,
     drift_warnings,

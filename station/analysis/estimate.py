@@ -30,15 +30,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 
-from station.core import GAIN_UNITY, Trims
+from station.core import GAIN_UNITY, Method, Trims
 from station.dsp import h1_then_h2_null
-
-
-class Method(StrEnum):
-    """How the trims were estimated (reported with every result)."""
-
-    PAPER = "paper"
-    COHERENT = "coherent"
 
 
 class TrimAxis(StrEnum):

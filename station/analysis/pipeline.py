@@ -19,7 +19,6 @@ from threadpoolctl import threadpool_limits
 
 from station.analysis.clipping import hidden_by_clipping
 from station.analysis.estimate import (
-    Method,
     TrimEstimate,
     TrimPoint,
     Unsupported,
@@ -52,7 +51,7 @@ from station.analysis.segments import (
     steady_segments,
 )
 from station.analysis.timeline import Timeline
-from station.core import SATURATED_COUNTS, Mapper
+from station.core import SATURATED_COUNTS, Mapper, Method
 from station.errors import InputError
 
 

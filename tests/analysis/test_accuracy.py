@@ -27,10 +27,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from station.analysis.estimate import Method
 from station.analysis.pipeline import Analysis, AnalysisOptions, MethodChoice, analyze
 from station.analysis.reader import read_recording
-from station.core import LoadKind, Trims
+from station.core import LoadKind, Method, Trims
 from station.physics.params import derive_unit
 from station.recording import LogFormat
 from station.schedules import SweepPlan, calibration_schedule

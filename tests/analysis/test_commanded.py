@@ -18,7 +18,7 @@ from station.analysis.commanded import (
     commands_from_metadata,
     velocity_profile,
 )
-from station.analysis.estimate import Method, TrimAxis, fit_parabola
+from station.analysis.estimate import TrimAxis, fit_parabola
 from station.analysis.harmonics import period_phasors, phase_drift
 from station.analysis.pipeline import (
     AnalysisOptions,
@@ -29,6 +29,7 @@ from station.analysis.pipeline import (
 )
 from station.analysis.segments import holds
 from station.analysis.timeline import FrameKind, Timeline, build_timeline
+from station.core import Method
 from station.errors import RecordingError
 from tests.metadata import icd_metadata
 

@@ -22,7 +22,6 @@ from station.analysis.estimate import (
     CLIPPED_NOTE,
     CORRECTION_SIGMAS,
     SPLIT_SPREAD,
-    Method,
     TrimAxis,
     TrimPoint,
     Unsupported,
@@ -32,7 +31,7 @@ from station.analysis.estimate import (
     paper_estimate,
     widest_explained,
 )
-from station.core import GAIN_UNITY, Trims
+from station.core import GAIN_UNITY, Method, Trims
 
 # Offset A, offset B (mA), gain split (1/10000; gain A = 10000 + split, gain B = 10000 − split).
 OPTIMUM: NDArray[np.float64] = np.array([-120.0, 55.0, -150.0])
