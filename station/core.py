@@ -35,6 +35,12 @@ class Method(StrEnum):
     PAPER = "paper"
     COHERENT = "coherent"
 
+    @property
+    def needs_angle(self) -> bool:
+        """Whether the method's phasors need the drive's electrical angle with every
+        sample (a drive that reports it on the bus): the paper's magnitudes do not."""
+        return self is Method.COHERENT
+
 
 def offset_limit_mA(rated_current_mA: int) -> int:
     """The drive accepts offsets within ±rated/2 (ICD.md §2, 0x2100:01/02), in whole mA."""

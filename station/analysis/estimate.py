@@ -814,6 +814,13 @@ def coherent_estimate(points: Sequence[TrimPoint]) -> TrimEstimate:
     )
 
 
+ESTIMATORS: dict[Method, Callable[[Sequence[TrimPoint]], TrimEstimate]] = {
+    Method.COHERENT: coherent_estimate,
+    Method.PAPER: paper_estimate,
+}
+"""Each method's estimator over the same points, in the order ``auto`` prefers them."""
+
+
 def widest_explained(estimate: TrimEstimate, points: Sequence[TrimPoint],
                      steps: Sequence[tuple[float, float]]) -> tuple[float, float] | None:
     """The widest of ``steps`` (offset mA, split) whose star around the estimate the

@@ -19,11 +19,10 @@ from threadpoolctl import threadpool_limits
 
 from station.analysis.clipping import hidden_by_clipping
 from station.analysis.estimate import (
+    ESTIMATORS,
     TrimEstimate,
     TrimPoint,
     Unsupported,
-    coherent_estimate,
-    paper_estimate,
 )
 from station.analysis.harmonics import (
     DEFAULT_ORDERS,
@@ -401,8 +400,8 @@ def estimate_condition(condition: Condition, choice: MethodChoice, *,
     points = [m.point() for m in condition.measured]
     estimates: dict[Method, TrimEstimate] = {}
     unsupported: dict[Method, str] = {}
-    for method, estimator in ((Method.COHERENT, coherent_estimate), (Method.PAPER, paper_estimate)):
-        if method is Method.COHERENT and not drive_reported:
+    for method, estimator in ESTIMATORS.items():
+        if method.needs_angle and not drive_reported:
             unsupported[method] = ("the drive reported no electrical angle (no TPDOs: a Modbus "
                                    "drive); only magnitudes are meaningful")
             continue
@@ -411,7 +410,7 @@ def estimate_condition(condition: Condition, choice: MethodChoice, *,
         except Unsupported as exc:
             unsupported[method] = str(exc)
     if choice is MethodChoice.AUTO:
-        chosen = estimates.get(Method.COHERENT) or estimates.get(Method.PAPER)
+        chosen = next((estimates[m] for m in ESTIMATORS if m in estimates), None)
     else:
         chosen = estimates.get(Method(choice.value))
     return ConditionResult(condition, chosen, estimates, unsupported)

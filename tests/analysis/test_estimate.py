@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 from station.analysis.estimate import (
     CLIPPED_NOTE,
     CORRECTION_SIGMAS,
+    ESTIMATORS,
     SPLIT_SPREAD,
     TrimAxis,
     TrimPoint,
@@ -480,3 +481,9 @@ def test_an_estimate_without_phasor_maps_asks_for_no_star() -> None:
     design = cross_design(a_at=OPTIMUM[0], split_at=(OPTIMUM[0], OPTIMUM[1]))
     pts = points(design, seed=3)
     assert widest_explained(paper_estimate(pts), pts, STEPS) is None
+
+
+def test_every_method_has_one_estimator_and_says_whether_it_needs_the_drive_angle() -> None:
+    assert set(ESTIMATORS) == set(Method)
+    assert next(iter(ESTIMATORS)) is Method.COHERENT  # what "auto" prefers
+    assert Method.COHERENT.needs_angle and not Method.PAPER.needs_angle
