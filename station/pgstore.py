@@ -219,17 +219,11 @@ class PostgresStore:
     def finish_run(self, run: Run) -> None:
         """As ``Store.finish_run``: everything the run learnt, atomically and once."""
         check_finishable(run)
-        assert run.run_id is not None  # checked
-        values = _sql_values(result_values(run))
-        limits = [_sql_values(limit_values(run.run_id, i, check))
-                  for i, check in enumerate(run.limits)]
         with held(), self._transaction(f"finish run {run.run_id}") as conn:
             exists = conn.execute("SELECT 1 FROM runs WHERE run_id = %s", (run.run_id,))
             if exists.fetchone() is None:
                 raise InputError(f"no run {run.run_id} in database {self.location}")
-            with conn.cursor() as cursor:
-                cursor.executemany(_INSERT_LIMIT, limits)
-            conn.execute(_UPDATE_RESULTS, values)
+            self._finish_row(conn, run)
 
     def forward_run(self, run: Run, recipe_text: str, previous_uuid: UUID | None
                     ) -> tuple[int, bool]:
@@ -245,10 +239,16 @@ class PostgresStore:
                              "forwarded")
         recipe = recipe_values(run, recipe_text)
         with held(), self._transaction(f"forward a run of {run.serial}") as conn:
-            found = conn.execute("SELECT run_id FROM runs WHERE run_uuid = %s",
+            found = conn.execute("SELECT run_id, verdict FROM runs WHERE run_uuid = %s",
                                  (run.run_uuid,)).fetchone()
-            if found is not None:
+            if found is not None and found["verdict"] is not None:
                 return int(found["run_id"]), False
+            if found is not None:
+                # Begun here, finished in the spool while this server was away: finished
+                # now, on the row that holds its beginning (and its previous run).
+                run_id = int(found["run_id"])
+                self._finish_row(conn, replace(run, run_id=run_id))
+                return run_id, True
             previous = None if previous_uuid is None else conn.execute(
                 "SELECT run_id FROM runs WHERE run_uuid = %s", (previous_uuid,)).fetchone()
             here = replace(run, previous_run_id=None if previous is None
@@ -259,13 +259,17 @@ class PostgresStore:
             if row is None:  # pragma: no cover - RETURNING always gives the row
                 raise self._error("forward a run", None)
             run_id = int(row["run_id"])
-            # As a finish: limit checks while the row is open, then its results.
-            with conn.cursor() as cursor:
-                cursor.executemany(_INSERT_LIMIT, [
-                    _sql_values(limit_values(run_id, i, check))
-                    for i, check in enumerate(here.limits)])
-            conn.execute(_UPDATE_RESULTS, _sql_values(result_values(replace(here, run_id=run_id))))
+            self._finish_row(conn, replace(here, run_id=run_id))
         return run_id, True
+
+    @staticmethod
+    def _finish_row(conn: psycopg.Connection[dict[str, Any]], run: Run) -> None:
+        """An open row's limit checks (admitted only while it is open), then its results."""
+        assert run.run_id is not None
+        with conn.cursor() as cursor:
+            cursor.executemany(_INSERT_LIMIT, [_sql_values(limit_values(run.run_id, i, check))
+                                               for i, check in enumerate(run.limits)])
+        conn.execute(_UPDATE_RESULTS, _sql_values(result_values(run)))
 
     def get_run(self, run_id: int) -> Run:
         runs = self._runs(f"read run {run_id}", "WHERE run_id = %s", (run_id,))
@@ -362,6 +366,9 @@ class PostgresStore:
             with conn.transaction():
                 yield conn
         except psycopg.Error as exc:
+            if conn.broken or conn.closed:  # the server went away, not the request wrong
+                raise DatabaseUnreachable(self.location, f"cannot {doing}: "
+                                          f"{str(exc).strip()}") from exc
             raise self._error(f"cannot {doing}", exc) from exc
 
     def _runs(self, doing: str, tail: str, params: Sequence[object]) -> list[Run]:

@@ -16,7 +16,7 @@ import os
 import tempfile
 from collections.abc import Iterator, Sequence
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, cast
@@ -50,6 +50,7 @@ from station.recipes import (
     load_recipe,
     parse_recipe,
 )
+from station.recording import metadata_path_for
 from station.rows import RunFilter, VerificationRecord
 from station.runs import LimitName, RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
@@ -169,7 +170,8 @@ def calibrate(station: Station, serial_label: str, recipe_name: str | None = Non
         run = _new_run(station, serial, recipe, RunKind.CALIBRATE)
         if spooled is not None:
             run.warnings.append(spooled)
-        return Calibration(_execute(store, station, serial, recipe, run, observer=observer))
+        return Calibration(_execute(store, station, serial, recipe, run, observer=observer,
+                                    spooled=spooled is not None))
 
 
 def recalibrate(station: Station, serial_label: str, reason: str, *,
@@ -209,7 +211,7 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         run.previous_run_id = previous.run_id if previous is not None else None
         previous_trims = previous.trims_after if previous is not None else None
         run = _execute(store, station, serial, recipe, run, observer=observer,
-                       previous_trims=previous_trims)
+                       previous_trims=previous_trims, spooled=spooled is not None)
         return Calibration(run, previous)
 
 
@@ -251,7 +253,8 @@ def _new_run(station: Station, serial: Serial, recipe: Recipe, kind: RunKind) ->
 
 
 def _execute(store: RunStore, station: Station, serial: Serial, recipe: Recipe, run: Run, *,
-             observer: Observer | None, previous_trims: Trims | None = None) -> Run:
+             observer: Observer | None, previous_trims: Trims | None = None,
+             spooled: bool = False) -> Run:
     """Run the procedure and record the outcome, whatever it is."""
     if not station.bench.sees_drive_angle and not recipe.angle_free:
         # Refused before anything is recorded or sent: the operator picked a wrong pair.
@@ -270,13 +273,13 @@ def _execute(store: RunStore, station: Station, serial: Serial, recipe: Recipe, 
             raise  # the operator's mistake: nothing recorded, nothing written to the drive
         except StationError as exc:
             failure = exc  # a bench that cannot be reached is recorded like any station error
-        run_id = store.begin_run(run, recipe.text)
+        store.begin_run(run, recipe.text)
         try:
             try:
                 if failure is not None:
                     raise failure
                 assert session is not None
-                recording = folder / f"{serial.label}-run{run_id:06d}{RECORDING_SUFFIX}"
+                recording = _recording_path(folder, serial, run, spooled=spooled)
                 request = CalibrationRequest(serial, recipe, station.bench, recording)
                 calibrate_unit(request, run, session, observer)
             finally:
@@ -294,6 +297,20 @@ def _execute(store: RunStore, station: Station, serial: Serial, recipe: Recipe, 
         finally:
             _finish(store, recipe, run, previous_trims)
     return run
+
+
+def _recording_path(folder: Path, serial: Serial, run: Run, *, spooled: bool) -> Path:
+    """Where the run's recording goes: named by its number in the database it is recorded
+    in, which never names another recording there. A spool numbers its runs from 1 as
+    the line does, in the same folder, so its recordings say so; a name already taken (a
+    database replaced, its numbers begun again) gets the run's UUID as well, since a
+    recording is never overwritten."""
+    assert run.run_id is not None  # begun
+    stem = f"{serial.label}-{'spool' if spooled else 'run'}{run.run_id:06d}"
+    path = folder / f"{stem}{RECORDING_SUFFIX}"
+    if path.exists() or metadata_path_for(path).exists():
+        path = folder / f"{stem}-{run.run_uuid}{RECORDING_SUFFIX}"
+    return path
 
 
 def _recordings_folder(db_path: DbTarget, serial: Serial) -> Path:
@@ -316,7 +333,29 @@ def _finish(store: RunStore, recipe: Recipe, run: Run, previous_trims: Trims | N
     if previous_trims is not None and run.trims_after is not None:
         run.warnings.extend(drift_warnings(recipe.limits, previous_trims, run.trims_after))
     run.finished_at = datetime.now(UTC)
-    store.finish_run(run)
+    try:
+        store.finish_run(run)
+    except DatabaseUnreachable as exc:
+        _spool_finished(run, recipe, exc)
+
+
+def _spool_finished(run: Run, recipe: Recipe, exc: DatabaseUnreachable) -> None:
+    """A line that went away during the run: the finished run goes into the station's
+    spool under its own UUID, and forwarding it finishes the open row the line keeps."""
+    from station import spool  # noqa: PLC0415 - only a line's database gets here
+
+    path = spool.spool_path()
+    why = " ".join(str(exc).split())
+    log.warning("%s when run %s finished: recording it into this station's spool %s",
+                why, run.run_id, path)
+    run.warnings.append(f"recorded in this station's spool ({path}) because {why} when "
+                        "the run finished; `station sync` finishes it on the line")
+    # The spool numbers its runs itself, and the line's numbers mean nothing there: the
+    # line keeps the run's previous run on its open row.
+    copy = replace(run, run_id=None, previous_run_id=None)
+    with Store(path) as spooled:
+        spooled.begin_run(copy, recipe.text)
+        spooled.finish_run(copy)
 
 
 # --- verify -----------------------------------------------------------------------------------

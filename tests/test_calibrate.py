@@ -681,3 +681,16 @@ def test_query_filters_runs_and_writes_csv(
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("run_id,serial,kind,started_at")
     assert len(lines) == 3
+
+
+def test_a_recording_is_never_overwritten_by_a_run_of_the_same_number(
+    station_home: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+) -> None:
+    # A database begun again (a new file) numbers its runs from 1 in the same folder.
+    older = station_home / "recordings" / "SN123" / "SN123-run000001.blf"
+    older.parent.mkdir(parents=True)
+    older.write_bytes(b"a recording of an earlier database")
+    code, doc = _run(["calibrate", "SN123", "--json"], monkeypatch, capsys)
+    assert code == 0 and doc["run_id"] == 1, LAST_STDERR[0]
+    assert Path(doc["recording"]).name == f"SN123-run000001-{doc['run_uuid']}.blf"
+    assert older.read_bytes() == b"a recording of an earlier database"

@@ -18,7 +18,7 @@ import pytest
 
 from station.cli import main
 from station.core import Trims
-from station.errors import DatabaseError
+from station.errors import DatabaseError, DatabaseUnreachable
 from station.pgstore import PostgresStore
 from station.rows import RunFilter, VerificationRecord
 from station.runs import Run, Verdict
@@ -239,6 +239,8 @@ def test_a_station_that_cannot_reach_its_line_spools_and_sync_forwards_once(
     assert code == 0 and first["verdict"] == "pass", LAST_STDERR[0]
     assert any("recorded in this station's spool" in w and ":pw@" not in w
                for w in first["warnings"])
+    # Named as the spool numbers it: the line's run 1 of this unit may be on this disk too.
+    assert Path(first["recording"]).name == "SN123-spool000001.blf"
     # Field service at the same station while the line is still away: the spool has it.
     code, _ = cli("recalibrate", "SN123", "--reason", "noisy", "--db", dead, "--json")
     assert code == 0, LAST_STDERR[0]
@@ -323,3 +325,33 @@ def test_sync_shows_forwarded_runs_under_the_line_s_numbers(
     assert stop.value.code in (0, None)
     table = capsys.readouterr().out
     assert re.search(r"^\s*2\s+\d{4}-\d\d-\d\d\s+SN123\s+pass", table, re.MULTILINE), table
+
+
+def test_a_line_lost_while_the_run_went_on_has_its_run_finished_by_sync(
+    postgresql_url: str, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+) -> None:
+    # The server answers when the run begins and is gone when it finishes.
+    def gone(self: PostgresStore, run: Run) -> None:
+        raise DatabaseUnreachable(self.location, "cannot finish run: server closed the "
+                                  "connection unexpectedly")
+
+    with monkeypatch.context() as patch:
+        patch.setattr(PostgresStore, "finish_run", gone)
+        code, doc = _cli(["calibrate", "SN123", "--db", postgresql_url, "--json"], monkeypatch,
+                         capsys)
+    assert code == 0 and doc["verdict"] == "pass", LAST_STDERR[0]
+    assert any("when the run finished" in w for w in doc["warnings"])
+    assert Path(doc["recording"]).name == "SN123-run000001.blf"  # the line's number
+    with PostgresStore(postgresql_url) as line:
+        (open_row,) = line.history("SN123")
+    assert open_row.verdict is None and str(open_row.run_uuid) == doc["run_uuid"]
+    assert [str(r.run_uuid) for r in pending()] == [doc["run_uuid"]]
+
+    code, report = _cli(["sync", "--db", postgresql_url, "--json"], monkeypatch, capsys)
+    assert code == 0, LAST_STDERR[0]
+    assert [(f["line_run_id"], f["new"]) for f in report["forwarded"]] == [(1, True)]
+    with PostgresStore(postgresql_url) as line:
+        (finished,) = line.history("SN123")
+    assert finished.run_id == 1 and finished.verdict is Verdict.PASS
+    assert finished.trims_after is not None and finished.limits
+    assert finished.recording == doc["recording"]
