@@ -12,12 +12,17 @@ stores (``station.store``, ``station.pgstore``) use it; only this module reads
 from __future__ import annotations
 
 import json
+import logging
 import os
 import socket
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from station.runs import Verdict
+
+log = logging.getLogger(__name__)
 
 _BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
 _OWN_PID_NAMESPACE = Path("/proc/self/ns/pid")
@@ -192,6 +197,24 @@ class InterruptedRun:
     serial: str
     owner: RunOwner
     reason: str
+
+    def finish_values(self, finished_at: str) -> dict[str, object]:
+        """The row's columns it is finished with (``utc_iso`` time)."""
+        return {"run_id": self.run_id, "verdict": Verdict.ABORTED.value,
+                "reason": self.reason, "finished_at": finished_at}
+
+
+def interrupted_runs(gone: Iterable[tuple[int, str, RunOwner, str]], found_at_run: int
+                     ) -> list[InterruptedRun]:
+    """The runs ``gone_owners`` found, each with the reason it is finished with."""
+    return [InterruptedRun(run_id, serial, owner, interrupted_reason(owner, why, found_at_run))
+            for run_id, serial, owner, why in gone]
+
+
+def log_interrupted(runs: Iterable[InterruptedRun]) -> None:
+    for found in runs:
+        log.warning("run %d of %s marked aborted: %s", found.run_id, found.serial,
+                    found.reason)
 
 
 def interrupted_reason(owner: RunOwner, why: str, found_at_run: int) -> str:

@@ -35,7 +35,8 @@ from station.owners import (
     RunOwner,
     current_owner,
     gone_owners,
-    interrupted_reason,
+    interrupted_runs,
+    log_interrupted,
     probe_process,
 )
 from station.rows import (
@@ -56,7 +57,7 @@ from station.rows import (
     verification_from,
     verification_values,
 )
-from station.runs import LimitCheck, Run, Verdict, utc_iso
+from station.runs import LimitCheck, Run, utc_iso
 from station.signals import held
 from station.storage import describe
 
@@ -201,17 +202,11 @@ class PostgresStore:
             if row is None:  # pragma: no cover - RETURNING always gives the row
                 raise self._error("begin a run", None)
             run_id = int(row["run_id"])
+            interrupted = interrupted_runs(gone, run_id)
             finished_at = utc_iso(datetime.now(UTC))
-            interrupted = []
-            for open_id, serial, open_owner, why in gone:
-                reason = interrupted_reason(open_owner, why, run_id)
-                conn.execute(_FINISH_INTERRUPTED, {
-                    "run_id": open_id, "verdict": Verdict.ABORTED.value, "reason": reason,
-                    "finished_at": finished_at})
-                interrupted.append(InterruptedRun(open_id, serial, open_owner, reason))
-        for found in interrupted:
-            log.warning("run %d of %s marked aborted: %s", found.run_id, found.serial,
-                        found.reason)
+            for found in interrupted:
+                conn.execute(_FINISH_INTERRUPTED, found.finish_values(finished_at))
+        log_interrupted(interrupted)
         self.interrupted.extend(interrupted)
         run.run_id = run_id
         return run_id

@@ -60,7 +60,6 @@ from station.storage import (
     RunStore,
     backend_of,
     describe,
-    is_url,
     open_store,
     target_of,
 )
@@ -92,7 +91,7 @@ def recordings_dir(db_path: DbTarget) -> Path:
     """Recordings live beside the station's own database, one folder per unit; with a
     line's database they stay on the station's disk, in its home (records hold their
     SHA-256, the recordings stay where they were made)."""
-    if isinstance(db_path, str) and is_url(db_path):
+    if backend_of(db_path) is Backend.POSTGRESQL:
         return station_home() / RECORDINGS_DIR
     return Path(db_path).parent / RECORDINGS_DIR
 
@@ -141,20 +140,20 @@ def _store_for_runs(station: Station) -> Iterator[tuple[RunStore, str | None]]:
         return
     from station import spool  # noqa: PLC0415 - psycopg only for a line's database
 
+    path = spool.spool_path()
     try:
         line = open_store(target)
     except DatabaseUnreachable as exc:
-        path = spool.spool_path()
-        why = " ".join(str(exc).split())  # the driver's message spans lines
+        why = _one_line(exc)
         log.warning("%s: recording into this station's spool %s", why, path)
         with Store(path) as spooled:
             yield spooled, (f"recorded in this station's spool ({path}) because {why}; "
                             "`station sync` forwards it")
         return
     with line:
-        if spool.spool_path().exists():
+        if path.exists():
             try:
-                with Store(spool.spool_path()) as spooled:
+                with Store(path) as spooled:
                     spool.forward(spooled, cast("PostgresStore", line))
             except DatabaseError as exc:  # the run goes on; the spool waits for the next one
                 log.warning("the spool was not forwarded: %s", exc)
@@ -339,13 +338,18 @@ def _finish(store: RunStore, recipe: Recipe, run: Run, previous_trims: Trims | N
         _spool_finished(run, recipe, exc)
 
 
+def _one_line(exc: DatabaseUnreachable) -> str:
+    """The error as a warning says it: the database driver's message spans lines."""
+    return " ".join(str(exc).split())
+
+
 def _spool_finished(run: Run, recipe: Recipe, exc: DatabaseUnreachable) -> None:
     """A line that went away during the run: the finished run goes into the station's
     spool under its own UUID, and forwarding it finishes the open row the line keeps."""
     from station import spool  # noqa: PLC0415 - only a line's database gets here
 
     path = spool.spool_path()
-    why = " ".join(str(exc).split())
+    why = _one_line(exc)
     log.warning("%s when run %s finished: recording it into this station's spool %s",
                 why, run.run_id, path)
     run.warnings.append(f"recorded in this station's spool ({path}) because {why} when "
