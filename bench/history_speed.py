@@ -20,6 +20,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from bench.record import BenchRecord, Goal
+from station.rows import RunFilter
 from station.runs import LimitName, RunKind, Verdict, utc_iso
 from station.store import Store
 
@@ -31,6 +32,7 @@ FAIL_EVERY = 100  # about 1 % of runs fail
 YEAR_S = 365 * 24 * 3600
 START = datetime(2024, 1, 1, tzinfo=UTC)
 REPEATS = 5
+STATS_REPEATS = 3
 RECIPE_NAME = "default"
 RECIPE_VERSION = "1.0"
 RECIPE_TEXT = f'name = "{RECIPE_NAME}"\nversion = "{RECIPE_VERSION}"\n'
@@ -92,7 +94,7 @@ WHERE i % :fail_every = 0 OR (i % :stride = 0 AND i / :stride % 3 = 0)
 """
 
 
-def _build(path: Path) -> None:
+def build(path: Path) -> None:
     Store(path).close()
     conn = sqlite3.connect(path, isolation_level=None)
     try:
@@ -104,7 +106,7 @@ def _build(path: Path) -> None:
         conn.execute(
             "INSERT INTO recipes (sha256, name, version, text, first_used_at) "
             "VALUES (?, ?, ?, ?, ?)",
-            (_recipe_sha256(), RECIPE_NAME, RECIPE_VERSION, RECIPE_TEXT, utc_iso(START)),
+            (recipe_sha256(), RECIPE_NAME, RECIPE_VERSION, RECIPE_TEXT, utc_iso(START)),
         )
         conn.execute(
             _FILL_LIMITS,
@@ -132,7 +134,7 @@ def _build(path: Path) -> None:
                 "fail": Verdict.FAIL.value,
                 "recipe_name": RECIPE_NAME,
                 "recipe_version": RECIPE_VERSION,
-                "recipe_sha256": _recipe_sha256(),
+                "recipe_sha256": recipe_sha256(),
             },
         )
         conn.execute("COMMIT")
@@ -140,7 +142,7 @@ def _build(path: Path) -> None:
         conn.close()
 
 
-def _recipe_sha256() -> str:
+def recipe_sha256() -> str:
     return hashlib.sha256(RECIPE_TEXT.encode()).hexdigest()
 
 
@@ -148,7 +150,7 @@ def measure() -> list[BenchRecord]:
     with tempfile.TemporaryDirectory(prefix="station-bench-history-") as tmp:
         path = Path(tmp) / "station.db"
         start = time.perf_counter()
-        _build(path)
+        build(path)
         build_s = time.perf_counter() - start
         with Store(path) as store:
             history = store.history(TARGET_SERIAL)  # warm-up: pages into the cache
@@ -159,7 +161,17 @@ def measure() -> list[BenchRecord]:
                 start = time.perf_counter()
                 store.history(TARGET_SERIAL)
                 times.append(time.perf_counter() - start)
+            # QA's statistics over the whole year, summed by SQLite (station.statsql).
+            store.statistics(RunFilter())
+            stats = []
+            for _ in range(STATS_REPEATS):
+                start = time.perf_counter()
+                (everything,) = store.statistics(RunFilter())
+                stats.append(time.perf_counter() - start)
+            if everything.runs != RUNS + TARGET_RUNS:
+                raise RuntimeError(f"statistics over {everything.runs} runs")
     return [
         BenchRecord("history_ms_1M_runs", min(times) * 1000.0, "ms", 50.0, Goal.AT_MOST),
+        BenchRecord("sqlite_stats_s_1M_runs", min(stats), "s", 1.0, Goal.AT_MOST),
         BenchRecord("history_db_build_s", build_s, "s", 120.0, Goal.AT_MOST),
     ]

@@ -39,6 +39,7 @@ from station.owners import (
     log_interrupted,
     probe_process,
 )
+from station.qa import RecipeStatistics
 from station.rows import (
     LIMIT_COLUMNS,
     RESULT_COLUMNS,
@@ -59,6 +60,7 @@ from station.rows import (
 )
 from station.runs import LimitCheck, Run, utc_iso
 from station.signals import held
+from station.statsql import recipe_statistics
 from station.storage import describe
 
 log = logging.getLogger(__name__)
@@ -284,6 +286,13 @@ class PostgresStore:
         newest = self._runs("query runs", f"{where} ORDER BY run_id DESC LIMIT %s",
                             [*params, f.limit])
         return newest[::-1]
+
+    def statistics(self, f: RunFilter) -> list[RecipeStatistics]:
+        """QA's figures per recipe version, summed by the database in one snapshot."""
+        with self._transaction("compute the statistics") as conn:
+            conn.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ")
+            return recipe_statistics(lambda sql, params: conn.execute(sql, params).fetchall(),
+                                     f, "%s")
 
     def last_stored(self, serial: str) -> Run | None:
         """The run whose trims the unit should hold, whichever station stored them."""

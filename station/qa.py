@@ -12,7 +12,9 @@ from __future__ import annotations
 import math
 import statistics
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+from station.runs import RecipeRef, Verdict
 
 
 @dataclass(frozen=True)
@@ -58,3 +60,51 @@ def _cpk(mean: float, std: float, low: float | None, high: float | None) -> floa
     if low is not None:
         sides.append((mean - low) / (3.0 * std))
     return min(sides) if sides else None
+
+
+@dataclass(frozen=True)
+class Moments:
+    """Count, sum and sum of squares of one quantity, each value less a pivot.
+
+    A database sums a million rows faster than it can send them, but the textbook
+    ``sum(x**2) - n * mean**2`` loses every digit of a spread that is small against
+    the mean (gains near 10000 units that differ by a few). Sums of ``x - pivot``,
+    with the pivot one of the values, keep the cancellation to the spread's own scale.
+    Moments of one pivot add, so groups summed apart (by verdict, say) combine here.
+    """
+
+    pivot: float
+    n: int = 0
+    shifted_sum: float = 0.0
+    shifted_squares: float = 0.0
+
+    def __add__(self, other: Moments) -> Moments:
+        if other.pivot != self.pivot:
+            raise ValueError("moments add only about the same pivot")
+        return Moments(self.pivot, self.n + other.n, self.shifted_sum + other.shifted_sum,
+                       self.shifted_squares + other.shifted_squares)
+
+    def capability(self, low: float | None, high: float | None) -> Capability:
+        """What ``capability`` gives for the values these moments were summed from."""
+        if low is not None and high is not None and low > high:
+            raise ValueError(f"low limit {low} is above high limit {high}")
+        n = self.n
+        if not (math.isfinite(self.shifted_sum) and math.isfinite(self.shifted_squares)):
+            raise ValueError("capability needs finite values; the sums were not finite")
+        mean = self.pivot + self.shifted_sum / n if n else math.nan
+        std = math.nan
+        if n >= 2:
+            # Rounding can leave a hair below zero when every value is equal.
+            variance = (self.shifted_squares - self.shifted_sum**2 / n) / (n - 1)
+            std = math.sqrt(max(variance, 0.0))
+        return Capability(n, mean, std, low, high, _cpk(mean, std, low, high))
+
+
+@dataclass(frozen=True)
+class RecipeStatistics:
+    """Process capability of one recipe version over the runs QA selected."""
+
+    recipe: RecipeRef
+    runs: int
+    verdicts: dict[Verdict, int]
+    quantities: dict[str, Capability] = field(default_factory=dict)

@@ -331,7 +331,13 @@ def filter_clauses(f: RunFilter, mark: str) -> tuple[str, list[object]]:
     """The WHERE clause (or nothing) of a QA filter, with ``mark`` as the placeholder of
     the backend's driver (``?``, ``%s``), and its parameters: QA's question is asked of
     every database in the same words."""
-    clauses: list[str] = []
+    terms, params = filter_terms(f, mark)
+    return (f"WHERE {' AND '.join(terms)}" if terms else ""), params
+
+
+def filter_terms(f: RunFilter, mark: str) -> tuple[list[str], list[object]]:
+    """The conditions of a QA filter on the runs table, to be joined with AND."""
+    terms: list[str] = []
     params: list[object] = []
     for column, op, value in (
         ("serial", "=", f.serial),
@@ -342,9 +348,9 @@ def filter_clauses(f: RunFilter, mark: str) -> tuple[str, list[object]]:
         ("station_id", "=", f.station_id),
     ):
         if value is not None:
-            clauses.append(f"{column} {op} {mark}")
+            terms.append(f"runs.{column} {op} {mark}")
             params.append(value)
-    return (f"WHERE {' AND '.join(clauses)}" if clauses else ""), params
+    return terms, params
 
 
 def check_finishable(run: Run) -> None:

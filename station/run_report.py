@@ -15,8 +15,9 @@ from datetime import UTC, datetime
 from typing import Any
 
 from station.core import Trims
+from station.qa import RecipeStatistics
 from station.runs import Run, RunKind, utc_iso
-from station.service import Calibration, RecipeStatistics, Verification
+from station.service import Calibration, Verification
 
 
 def _trims(t: Trims | None) -> dict[str, float] | None:

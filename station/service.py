@@ -14,9 +14,9 @@ import getpass
 import logging
 import os
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, cast
@@ -41,7 +41,7 @@ from station.procedure import (
     check_identity,
     unit_on_bench,
 )
-from station.qa import Capability, capability
+from station.qa import RecipeStatistics
 from station.recipes import (
     DEFAULT_RECIPE,
     Recipe,
@@ -52,7 +52,7 @@ from station.recipes import (
 )
 from station.recording import metadata_path_for
 from station.rows import RunFilter, VerificationRecord
-from station.runs import LimitName, RecipeRef, Run, RunKind, Verdict
+from station.runs import RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
 from station.storage import (
     Backend,
@@ -422,16 +422,6 @@ def query(db_path: DbTarget, run_filter: RunFilter) -> list[Run]:
         return store.query(run_filter)
 
 
-@dataclass(frozen=True)
-class RecipeStatistics:
-    """Process capability of one recipe version over the runs QA selected."""
-
-    recipe: RecipeRef
-    runs: int
-    verdicts: dict[Verdict, int]
-    quantities: dict[str, Capability] = field(default_factory=dict)
-
-
 def statistics(db_path: DbTarget, run_filter: RunFilter) -> list[RecipeStatistics]:
     """Mean, standard deviation and Cpk of trims and residual ripple, per recipe version.
 
@@ -439,59 +429,11 @@ def statistics(db_path: DbTarget, run_filter: RunFilter) -> list[RecipeStatistic
     record keeps its limit checks with their bounds. No recipe text is parsed again, so
     runs recorded under an older recipe format (or a key since renamed) still count.
     Only runs that measured a unit (pass or fail) count; errors and aborts measured
-    nothing.
+    nothing. The database does the sums (``station.statsql``): a line's million runs are
+    never fetched.
     """
     with open_store(db_path) as store:
-        runs = store.query(run_filter)
-    groups: dict[str, list[Run]] = {}
-    for run in runs:
-        groups.setdefault(run.recipe.sha256, []).append(run)
-    out: list[RecipeStatistics] = []
-    for members in groups.values():
-        ref = members[0].recipe
-        verdicts = {v: sum(1 for r in members if r.verdict is v) for v in Verdict}
-        measured = [r for r in members if r.verdict in (Verdict.PASS, Verdict.FAIL)]
-        out.append(RecipeStatistics(ref, len(members), verdicts, _capabilities(measured)))
-    out.sort(key=lambda s: (s.recipe.name, s.recipe.version))
-    return out
-
-
-_CAPABILITY_LIMITS: dict[str, LimitName] = {
-    "offset_a_mA": LimitName.OFFSET_A,
-    "offset_b_mA": LimitName.OFFSET_B,
-    "gain_a": LimitName.GAIN_A,
-    "gain_b": LimitName.GAIN_B,
-    "h1_after_mps2": LimitName.H1_AFTER,
-    "h2_after_mps2": LimitName.H2_AFTER,
-}
-"""Each quantity QA follows, and the limit check whose bounds it is judged against."""
-
-
-def recorded_bounds(runs: Sequence[Run], name: LimitName) -> tuple[float | None, float | None]:
-    """The bounds the runs' own checks of ``name`` carried: the newest run's where the
-    software that judged them changed between runs of one recipe text; none where no run
-    recorded the check (its capability is then mean and spread only)."""
-    for run in sorted(runs, key=lambda r: r.started_at, reverse=True):
-        for check in run.limits:
-            if check.name == name and (check.low is not None or check.high is not None):
-                return check.low, check.high
-    return None, None
-
-
-def _capabilities(runs: Sequence[Run]) -> dict[str, Capability]:
-    trims = [r.trims_after for r in runs if r.trims_after is not None and r.trims_stored]
-    after = [r.after for r in runs if r.after is not None]
-    values: dict[str, list[float]] = {
-        "offset_a_mA": [t.offset_a_mA for t in trims],
-        "offset_b_mA": [t.offset_b_mA for t in trims],
-        "gain_a": [t.gain_a for t in trims],
-        "gain_b": [t.gain_b for t in trims],
-        "h1_after_mps2": [a.h1 for a in after],
-        "h2_after_mps2": [a.h2 for a in after],
-    }
-    return {key: capability(values[key], *recorded_bounds(runs, name))
-            for key, name in _CAPABILITY_LIMITS.items()}
-
+        return store.statistics(run_filter)
 
 
 # --- a spool's forwarding ---------------------------------------------------------------

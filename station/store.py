@@ -45,6 +45,7 @@ from station.owners import (
     log_interrupted,
     probe_process,
 )
+from station.qa import RecipeStatistics
 from station.rows import (
     LIMIT_COLUMNS,
     RESULT_COLUMNS,
@@ -65,12 +66,15 @@ from station.rows import (
 )
 from station.runs import LimitCheck, Run, utc_iso
 from station.signals import held
+from station.statsql import recipe_statistics
 
 log = logging.getLogger(__name__)
 
 
 BUSY_TIMEOUT_MS = 5000
 """Several stations may share one database file: wait this long for a lock."""
+ANALYSIS_LIMIT = 1000
+"""Rows ``PRAGMA optimize`` samples per index: enough to rank them, in milliseconds."""
 
 
 def _insert(table: str, columns: Sequence[str], verb: str = "INSERT") -> str:
@@ -166,6 +170,7 @@ class Store:
         # Forgotten before closing, so a second close is a no-op even if this one fails.
         conn, self._conn = self._conn, None
         if conn is not None:
+            _optimize(conn)
             try:
                 conn.close()
             except sqlite3.Error as exc:
@@ -264,6 +269,12 @@ class Store:
             "query runs", f"{where} ORDER BY run_id DESC LIMIT ?", [*params, f.limit]
         )
         return newest[::-1]
+
+    def statistics(self, f: RunFilter) -> list[RecipeStatistics]:
+        """QA's figures per recipe version, summed by the database in one snapshot."""
+        with self._transaction("compute the statistics") as conn:
+            return recipe_statistics(lambda sql, params: conn.execute(sql, params).fetchall(),
+                                     f, "?")
 
     def last_stored(self, serial: str) -> Run | None:
         """The run whose trims the unit should hold: the latest that stored any."""
@@ -477,6 +488,17 @@ class Store:
 
 
 # -- rows <-> dataclasses ---------------------------------------------------------
+
+
+def _optimize(conn: sqlite3.Connection) -> None:
+    """Refresh the planner's statistics of the tables this connection read, as SQLite
+    advises on closing. Without them it cannot tell a serial (a dozen runs) from a recipe
+    (a million) and may read a whole index for a unit's statistics. Sampling keeps it to
+    milliseconds; a station that cannot get the write lock at once leaves it to the next."""
+    with suppress(sqlite3.Error):
+        conn.execute(f"PRAGMA analysis_limit = {ANALYSIS_LIMIT}")
+        conn.execute("PRAGMA busy_timeout = 50")
+        conn.execute("PRAGMA optimize")
 
 
 def _switch_to_wal(conn: sqlite3.Connection) -> str:

@@ -24,7 +24,7 @@ import can.interfaces.virtual as virtual_bus
 import psycopg
 import pytest
 
-from tests.postgres import Cluster, server_binaries, throwaway_cluster
+from station.testing.postgres import Cluster, server_binaries, throwaway_cluster
 
 _GRACE_S = 2.0
 
