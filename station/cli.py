@@ -718,7 +718,7 @@ def recipes_command(as_json: JsonOption = False) -> None:
     docs: list[dict[str, Any]] = []
     for name in available_recipes():
         r = load_recipe(name)
-        docs.append({"name": r.name, "version": r.version, "method": r.method.value,
+        docs.append({"name": r.name, "version": r.version, "method": r.method,
                      "description": r.description, "electrical_hz": r.motion.electrical_hz,
                      "amplitude_mA": r.motion.amplitude_mA, "sha256": r.sha256})
     table = Table(title="recipes")

@@ -22,9 +22,8 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import math
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Sequence, Set
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from enum import StrEnum
@@ -35,33 +34,18 @@ from drivers.base import CalibrationRecord, Drive
 from station import __version__
 from station.analysis.estimate import (
     CLIPPED_NOTE,
-    ParabolaFit,
-    TrimAxis,
     TrimEstimate,
-    TrimSigma,
     Unsupported,
-    coherent_estimate,
     correction_from,
-    fit_parabola,
-    widest_explained,
 )
-from station.analysis.phasor_clock import clock_from_phasors
-from station.analysis.pipeline import AnalysisOptions, Measured, measure, still_settling
+from station.analysis.pipeline import Measured, still_settling
 from station.analysis.report import fit_summary
-from station.analysis.sampling import ClockPhase, RateObservation, pooled_clock
-from station.analysis.timeline import Timeline
+from station.analysis.sampling import ClockPhase
 from station.benches import BenchSession, BenchSpec, open_bench
 from station.capture import FrameCapture
 from station.commands import CommandLog, LoggedDrive
-from station.core import GAIN_UNITY, Method, Trims
+from station.core import Trims
 from station.designs import (
-    axis_sweep,
-    gain_sweep,
-    holds_for,
-    offset_a_sweep,
-    offset_b_sweep,
-    star,
-    with_split,
     within_drive_range,
 )
 from station.errors import (
@@ -71,9 +55,9 @@ from station.errors import (
     ProductMismatch,
     RecordingError,
     SelfCheckFailed,
-    SensorFault,
     StationError,
 )
+from station.holding import Holds
 from station.limits import (
     RIPPLE_LIMITS,
     clipping_check,
@@ -84,26 +68,19 @@ from station.limits import (
     unsupported,
     verdict_for,
 )
-from station.recipes import Clipping, CoherentSweep, MagnitudeSweep, PaperSweep, Recipe
+from station.methods import Plan, for_run, trims_text
+from station.recipes import Recipe
 from station.recorder import RecordingWriter
 from station.recording import RecordingMetadata
 from station.runner import Motion
 from station.runs import LimitCheck, LimitName, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for
-from station.selfcheck import sensor_in_motion_problems, sensor_self_check
+from station.selfcheck import sensor_self_check
 from station.serials import Serial, label_for
 
 log = logging.getLogger(__name__)
 
-_SAME_SPEED = 0.01
-"""Relative speed difference below which a segment belongs to the recipe's condition."""
 _U16_MAX = 0xFFFF
-_PAPER_ORDER = (
-    (Phase.SWEEP_OFFSET_A, TrimAxis.OFFSET_A),
-    (Phase.SWEEP_OFFSET_B, TrimAxis.OFFSET_B),
-    (Phase.SWEEP_GAIN, TrimAxis.GAIN_SPLIT),
-)
-"""The paper's order: each sweep with the trims swept before it already at their vertices."""
 
 
 class Step(StrEnum):
@@ -202,6 +179,47 @@ def sha256_of(path: Path) -> str:
     return digest.hexdigest()
 
 
+class _Context:
+    """What a calibration method sees of the run (``station.methods.SweepContext``)."""
+
+    def __init__(self, calibration: _Calibration, centre: Trims,
+                 baseline: Sequence[Measured]) -> None:
+        self._run = calibration
+        self._centre = centre
+        self._baseline = tuple(baseline)
+
+    @property
+    def recipe(self) -> Recipe:
+        return self._run.recipe
+
+    @property
+    def centre(self) -> Trims:
+        return self._centre
+
+    @property
+    def baseline(self) -> Sequence[Measured]:
+        return self._baseline
+
+    @property
+    def left_out(self) -> Set[Trims]:
+        return self._run.held.left_out
+
+    def clock(self, held: Sequence[Measured]) -> ClockPhase | None:
+        # The clock the latest estimate's phasors used: the verification's correction
+        # and the record's fit summary follow it.
+        self._run.clock_used = self._run.held.clock_phase(held)
+        return self._run.clock_used
+
+    def storable(self, trims: Trims) -> bool:
+        return trims_within(self._run.recipe.limits, trims)
+
+    def warn(self, text: str) -> None:
+        self._run.run_record.warnings.append(text)
+
+    def estimating(self, detail: str) -> None:
+        self._run.observer.step(Step.ESTIMATE, detail)
+
+
 class _Calibration:
     """One run's state: the session, the recipe's operating point, what was measured."""
 
@@ -221,20 +239,17 @@ class _Calibration:
         self.velocity = 0
         self.electrical_hz = self.recipe.motion.electrical_hz
         self.capture: FrameCapture | None = None
+        self.holds: Holds | None = None  # once the unit is identified: its speed is known
         self.record_before: CalibrationRecord | None = None
-        self.clipped = 0  # measured samples at the sensor's full scale, and all of them
-        self.received = 0
         self.eeprom_touched = False  # a store was sent: the EEPROM may differ from before
-        self.remeasured = 0  # holds measured again nearer their centre because they clipped
-        self.left_out: set[Trims] = set()  # points whose holds clipped beyond the recipe's share
-        # What the holds saw of the sensor's clock, pooled over the run (one sensor, one
-        # clock), the rate the latest holds were demodulated at, and the wraps found.
-        self.clock_seen: list[RateObservation] = []
-        self.clock_rate = 0.0
-        self.wraps: list[int] = []  # where, in the run's samples
-        self.clock_phasors: float | None = None  # the rate the phasors fitted best
         self.clock_used: ClockPhase | None = None  # the clock the last estimate's phasors used
         self.verified: Measured | None = None  # the hold the verdict was judged on
+
+    @property
+    def held(self) -> Holds:
+        """The run's holds (the unit identified: its speed is known)."""
+        assert self.holds is not None
+        return self.holds
 
     # -- the whole run ------------------------------------------------------------------------
 
@@ -293,12 +308,12 @@ class _Calibration:
                     drive.write_calibration_record(self.record_before)
                 drive.store()
                 run.trims_stored, run.trims_after = False, None
-                run.warnings.append(f"{drive.name}: previous trims {_trims_text(before)} and "
+                run.warnings.append(f"{drive.name}: previous trims {trims_text(before)} and "
                                     "calibration record stored again (rolled back)")
         except StationError as exc:
             log.error("%s: could not restore the trims it was found with: %s", drive.name, exc)
             run.warnings.append(
-                f"{drive.name}: could not restore its previous trims {_trims_text(before)} "
+                f"{drive.name}: could not restore its previous trims {trims_text(before)} "
                 f"in its {where} ({exc}): verify the unit before it ships"
             )
 
@@ -357,6 +372,10 @@ class _Calibration:
         self.record_before = drive.read_calibration_record()
         self.velocity = velocity_for(self.recipe.motion.electrical_hz, microsteps)
         self.electrical_hz = self.velocity / (4.0 * microsteps)
+        assert self.capture is not None  # listening since before the identity check
+        self.holds = Holds(self.recipe, self.run_record, self.session, self.capture,
+                           self.commands, velocity=self.velocity,
+                           electrical_hz=self.electrical_hz, sees_angle=self.sees_angle)
 
     def _calibrate(self) -> None:
         self._self_check()
@@ -387,15 +406,16 @@ class _Calibration:
         self.observer.step(Step.DONE, run.verdict.value if run.verdict else "")
 
     def _judge(self, checks: Sequence[LimitCheck]) -> None:
-        checks = (*checks, clipping_check(self.clipped, self.received, remeasured=self.remeasured,
-                                          left_out=len(self.left_out)))
+        held = self.held
+        checks = (*checks, clipping_check(held.clipped, held.received, remeasured=held.remeasured,
+                                          left_out=len(held.left_out)))
         run = self.run_record
         run.limits = checks
         run.verdict = verdict_for(checks)
         run.reason = summary(checks)
-        if run.verdict is Verdict.FAIL and self.left_out:
+        if run.verdict is Verdict.FAIL and self.held.left_out:
             # The likely cause, in words the operator can act on.
-            run.reason += (f"; {len(self.left_out)} point(s) left out because the ripple "
+            run.reason += (f"; {len(self.held.left_out)} point(s) left out because the ripple "
                            f"clipped the sensor's ±{self.recipe.motion.sensor_range_g} g")
         sigma = {LimitName.OFFSET_SIGMA, LimitName.GAIN_SIGMA}
         if (any(c.name in sigma and c.passed is False for c in checks)
@@ -426,197 +446,24 @@ class _Calibration:
         if not result.ok:
             raise SelfCheckFailed(sensor.name, "; ".join(result.problems))
 
-    def _measure(self, motion: Motion, points: list[Trims], phase: Phase, *,
-                 centre: Trims | None = None, lead_periods: float = 0.0,
-                 settle_periods: int | None = None,
-                 dwell_periods: int | None = None) -> list[Measured]:
-        """Hold each point and return what it measured, clipped holds dealt with.
-
-        Where the recipe allows, a hold clipped beyond its share is measured
-        again nearer ``centre`` (its design's centre, where the ripple is lower),
-        and left out when it still clips or cannot move; ``centre`` None (a
-        baseline, a verification) moves nothing.
-        """
-        found = self._hold(motion, points, phase, lead_periods=lead_periods,
-                           settle_periods=settle_periods, dwell_periods=dwell_periods)
-        policy = self.recipe.clipping
-        if policy is None:
-            return found
-        used, clipped = _unclipped(found, policy)
-        shrink = policy.step_shrink
-        for _ in range(policy.retries):
-            if centre is None or not clipped:
-                break
-            again = [p for p in dict.fromkeys(self._nearer(centre, p, shrink) for p in clipped)
-                     if p != centre and p not in self.left_out]
-            self._leave_out([p for p in clipped if self._nearer(centre, p, shrink) not in again],
-                            phase, policy, "it cannot be moved nearer its design's centre")
-            if not again:
-                clipped = []
-                break
-            self.run_record.warnings.append(
-                f"{phase.value}: {len(again)} point(s) clipped at the sensor's "
-                f"±{self.recipe.motion.sensor_range_g} g in more than "
-                f"{policy.max_share:.0%} of their samples: measured again at {shrink:g} of "
-                f"their step from {_trims_text(centre)}, where the ripple is lower")
-            self.remeasured += len(again)
-            kept, clipped = _unclipped(
-                self._hold(motion, again, phase, settle_periods=settle_periods,
-                           dwell_periods=dwell_periods), policy)
-            used += kept
-        self._leave_out(clipped, phase, policy,
-                        f"still clipped after {policy.retries} smaller step(s)"
-                        if centre is not None else "a point nothing can replace")
-        return used
-
-    def _nearer(self, centre: Trims, point: Trims, shrink: float) -> Trims:
-        """``point`` moved towards ``centre``: ``shrink`` of its step remains."""
-        def towards(c: float, p: float) -> float:
-            return c + shrink * (p - c)
-
-        moved = Trims(towards(centre.offset_a_mA, point.offset_a_mA),
-                      towards(centre.offset_b_mA, point.offset_b_mA),
-                      towards(centre.gain_a, point.gain_a), towards(centre.gain_b, point.gain_b))
-        return within_drive_range(moved, self.recipe.product.rated_current_mA)
-
-    def _leave_out(self, points: Sequence[Trims], phase: Phase, policy: Clipping,
-                   why: str) -> None:
-        """Points whose holds clipped beyond the recipe's share: not used, and said."""
-        for point in points:
-            if point in self.left_out:
-                continue
-            self.left_out.add(point)
-            self.run_record.warnings.append(
-                f"{phase.value}: point {_trims_text(point)} left out: clipped at the sensor's "
-                f"±{self.recipe.motion.sensor_range_g} g in more than {policy.max_share:.0%} "
-                f"of its samples ({why})")
-
-    def _hold(self, motion: Motion, points: list[Trims], phase: Phase, *,
-              lead_periods: float = 0.0, dwell_periods: int | None = None,
-              settle_periods: int | None = None, halves: bool = False) -> list[Measured]:
-        """Hold each point, then demodulate what the bus carried meanwhile.
-
-        Segments are matched to the plan by the trims the drive reported in
-        effect (TPDO2), never by when the station wrote them. A point that
-        yields no segment is left out with a warning; the estimators say
-        whether what remains suffices.
-        """
-        motion_spec = self.recipe.motion
-        dwell = motion_spec.dwell_periods if dwell_periods is None else dwell_periods
-        settle = motion_spec.settle_periods if settle_periods is None else settle_periods
-        holds = holds_for(
-            points,
-            phase=phase,
-            velocity=self.velocity,
-            amplitude_mA=motion_spec.amplitude_mA,
-            hold_periods=settle + dwell,
-            electrical_hz=self.electrical_hz,
-            sync_period_s=self.period_s,
-            lead_periods=lead_periods,
-        )
-        assert self.capture is not None
-        mark = self.capture.mark()
-        # The timeline begins at the first SYNC after the mark: the run's sample index of
-        # the next SYNC (one SYNC between the two calls moves u by a millionth of a period).
-        first = self.capture.syncs_seen()
-        motion.run(holds)
-        timeline = self.capture.timeline(mark, self.commands)
-        self._check_sensor(timeline)
-        self._count_clipping(timeline, phase)
-        measured, rejected = measure(timeline, AnalysisOptions(
-            settle_periods=float(settle), clock_seen=tuple(self.clock_seen),
-            first_sample=first, wraps_seen=tuple(self.wraps), halves=halves,
-            find_ringing=phase is not Phase.VERIFY, taper=phase is Phase.VERIFY))
-        self._follow_clock(measured)
-        best: dict[Trims, Measured] = {}
-        for m in measured:
-            seg = m.segment
-            hz = seg.electrical_hz(self.period_s)
-            if seg.amplitude_mA != motion_spec.amplitude_mA or (
-                abs(hz - self.electrical_hz) > _SAME_SPEED * self.electrical_hz
-            ):
-                continue
-            if seg.trims not in best or seg.samples > best[seg.trims].segment.samples:
-                best[seg.trims] = m
-        found: list[Measured] = []
-        for point in points:
-            if point in best:
-                found.append(best[point])
-                continue
-            reasons = "; ".join(sorted({r.reason for r in rejected})) or "no steady segment"
-            self.run_record.warnings.append(
-                f"{phase.value}: point {_trims_text(point)} not measured ({reasons})"
-            )
-        return found
-
-    def _follow_clock(self, measured: Sequence[Measured]) -> None:
-        """Keep what these holds saw of the sensor's clock for the run's later holds."""
-        self.clock_seen.extend(m.clock_observed for m in measured
-                               if m.clock_observed is not None)
-        if measured:
-            self.clock_rate = measured[0].clock_rate
-        self.wraps.extend(m.first_sample + m.wrap_at for m in measured
-                          if m.wrap_at is not None)
-
-    def _clock_phase(self, held: Sequence[Measured]) -> ClockPhase | None:
-        """The sensor's clock over the run so far, as the holds timed it and the phasors
-        refine it; None where no phasor is used (without the drive's angle only
-        magnitudes are)."""
-        if not self.sees_angle:
-            return None
-        clock = clock_from_phasors(held, pooled_clock(self.clock_seen), self.wraps)
-        self.clock_phasors = clock.rate
-        return clock
-
-    def _count_clipping(self, timeline: Timeline, phase: Phase) -> None:
-        """Say when holds clipped: the analysis leaves those samples out of its fits, and
-        an estimate must never come from clipped holds without a word: of 200 units of
-        the population benchmark, 133 clipped at ±4 g and only the three that the sensor
-        check stopped said so."""
-        clipped = timeline.losses.saturated_samples
-        received = int(timeline.sensor_valid.sum())
-        self.clipped += clipped
-        self.received += received
-        if clipped:
-            self.run_record.warnings.append(
-                f"{phase.value}: {clipped} of {received} samples clipped at the sensor's "
-                f"±{self.recipe.motion.sensor_range_g} g, left out of the fits")
-
-    def _check_sensor(self, timeline: Timeline) -> None:
-        """Refuse holds whose samples are not acceleration (saturated, unplugged, stuck)."""
-        problems = sensor_in_motion_problems(
-            timeline.accel_counts[timeline.sensor_valid],
-            timeline.metadata.sensor_lsb_mps2,
-            gravity_axis=self.session.fixture.gravity_axis,
-            gravity_tolerance_mps2=self.recipe.self_check.gravity_tolerance_mps2,
-        )
-        if problems:
-            raise SensorFault(self.session.sensor.name, "; ".join(problems))
-
     def _sweeps(self, motion: Motion) -> TrimEstimate | None:
         """Baseline, then the recipe's sweeps; the estimate, or None after a FAIL."""
         run = self.run_record
         assert run.trims_before is not None
         rated = self.recipe.product.rated_current_mA
         centre = within_drive_range(run.trims_before, rated)
-        self.observer.step(Step.BASELINE, _trims_text(centre))
-        baseline = self._measure(motion, [centre], Phase.BASELINE,
+        self.observer.step(Step.BASELINE, trims_text(centre))
+        baseline = self.held.measure(motion, [centre], Phase.BASELINE,
                                  lead_periods=self.recipe.motion.spin_up_periods)
         if baseline:
             h = baseline[0].harmonics
             run.before = Ripple(abs(h.h(1)), abs(h.h(2)))
         else:
             run.warnings.append("no baseline: the reduction cannot be judged")
-        sweep = self.recipe.sweep
+        method, settings = for_run(self.recipe, sees_angle=self.sees_angle)
         try:
-            if isinstance(sweep, PaperSweep):
-                estimate = self._paper(motion, sweep)
-            elif not self.sees_angle:
-                # No drive angle: the coherent method's phases mean nothing here.
-                assert self.recipe.magnitude_sweep is not None  # checked with the request
-                estimate = self._magnitude(motion, self.recipe.magnitude_sweep, centre)
-            else:
-                estimate = self._coherent(motion, sweep, centre, baseline)
+            estimate = self._follow(motion, method.plan(settings, _Context(self, centre,
+                                                                           baseline)))
         except Unsupported as exc:
             self._judge((unsupported(str(exc)),))
             return None
@@ -627,138 +474,33 @@ class _Calibration:
         run.fit = fit_summary(estimate)
         # The sensor's clock against SYNC as the holds were demodulated (0: on the SYNC).
         run.fit["sensor_clock"] = {
-            "ppm": round(self.clock_rate * 1e6, 1), "wraps": len(self.wraps),
-            **({} if self.clock_phasors is None
-               else {"phasors_ppm": round(self.clock_phasors * 1e6, 1)})}
+            "ppm": round(self.held.clock_rate * 1e6, 1), "wraps": len(self.held.wraps),
+            **({} if self.held.clock_phasors is None
+               else {"phasors_ppm": round(self.held.clock_phasors * 1e6, 1)})}
         run.warnings.extend(estimate.warnings)
         return estimate
 
-    def _paper(self, motion: Motion, sweep: PaperSweep) -> TrimEstimate:
-        """The paper's three experiments in order, each centred on the previous results."""
-        fits: list[ParabolaFit] = []
-        for phase, axis in _PAPER_ORDER:
-            if axis is TrimAxis.OFFSET_A:
-                points = offset_a_sweep(sweep.offset_min_mA, sweep.offset_max_mA,
-                                        sweep.offset_points)
-            elif axis is TrimAxis.OFFSET_B:
-                points = offset_b_sweep(fits[0].vertex, sweep.offset_min_mA,
-                                        sweep.offset_max_mA, sweep.offset_points)
-            else:
-                points = gain_sweep(fits[0].vertex, fits[1].vertex, sweep.gain_min,
-                                    sweep.gain_max, sweep.gain_points)
-            self.observer.step(Step.SWEEP, f"{phase.value}: {len(points)} points")
-            measured = self._measure(motion, points, phase, centre=_middle(points))
-            self.observer.step(Step.ESTIMATE, axis.value)
-            fit, warnings = fit_parabola([m.point() for m in measured], axis)
-            self.run_record.warnings.extend(warnings)
-            fits.append(fit)
-        return _from_vertices(fits)
-
-    def _magnitude(self, motion: Motion, sweep: MagnitudeSweep, centre: Trims) -> TrimEstimate:
-        """The paper's parabolas, round after round around the latest vertices.
-
-        Within a round each axis is swept with the previous axes already at their
-        new vertices, as the paper does; the last round gives the estimate.
-        """
-        rated = self.recipe.product.rated_current_mA
-        rounds = list(zip(sweep.offset_spans_mA, sweep.gain_spans, strict=True))
-        fits: list[ParabolaFit] = []
-        for number, (offset_span, gain_span) in enumerate(rounds, start=1):
-            fits = []
-            for phase, axis in _PAPER_ORDER:
-                span = gain_span if axis is TrimAxis.GAIN_SPLIT else offset_span
-                points = axis_sweep(centre, axis, span, sweep.points, rated)
-                self.observer.step(Step.SWEEP, f"round {number}/{len(rounds)}: {axis.value} "
-                                   f"±{span} around {_trims_text(centre)}")
-                measured = self._measure(motion, points, phase, centre=centre,
-                                         settle_periods=sweep.settle_periods,
-                                         dwell_periods=sweep.dwell_periods)
-                fit, warnings = fit_parabola([m.point() for m in measured], axis)
-                if number == len(rounds):
-                    self.run_record.warnings.extend(warnings)
-                fits.append(fit)
-                centre = within_drive_range(_at_vertex(centre, fit), rated)
-        return _from_vertices(fits)
-
-    def _coherent(self, motion: Motion, sweep: CoherentSweep, centre: Trims,
-                  baseline: list[Measured]) -> TrimEstimate:
-        """Star designs round after round, each around the latest estimate."""
-        rated = self.recipe.product.rated_current_mA
-        held: list[Measured] = list(baseline)
-        estimate: TrimEstimate | None = None
-        rounds = list(zip(sweep.offset_steps_mA, sweep.gain_steps, strict=True))
-        for number, (offset_step, gain_step) in enumerate(rounds, start=1):
-            self.observer.step(
-                Step.SWEEP,
-                f"round {number}/{len(rounds)}: ±{offset_step} mA, ±{gain_step} around "
-                f"{_trims_text(centre)}",
-            )
-            estimate = self._star_round(motion, centre, (offset_step, gain_step), held,
-                                        with_centre=number == 1 and not baseline)
-            centre = within_drive_range(estimate.trims, rated)
-        assert estimate is not None  # the recipe guarantees at least one round
-        for number in range(1, sweep.sigma_rounds + 1):
-            short = self._short_of_information(estimate, sweep.sigma_rounds - number + 1)
-            if short is None:
-                break
-            widest = widest_explained(estimate, [m.point(self.clock_used) for m in held],
-                                      rounds)
-            if widest is None:
-                break
-            offset_step, gain_step = int(widest[0]), int(widest[1])
-            self.run_record.warnings.append(
-                f"{Phase.SWEEP_STAR.value}: {short} after {len(rounds) + number - 1} rounds: "
-                f"one more of ±{offset_step} mA, ±{gain_step} around {_trims_text(centre)}")
-            self.observer.step(Step.SWEEP, f"σ round {number}/{sweep.sigma_rounds}: ±"
-                               f"{offset_step} mA, ±{gain_step} around {_trims_text(centre)}")
-            estimate = self._star_round(motion, centre, (offset_step, gain_step), held,
-                                        with_centre=False)
-            centre = within_drive_range(estimate.trims, rated)
-        return estimate
-
-    def _star_round(self, motion: Motion, centre: Trims, steps: tuple[int, int],
-                    held: list[Measured], *, with_centre: bool) -> TrimEstimate:
-        """One star around ``centre``, measured into ``held``; the estimate from them all.
-
-        A round's centre is measured only where nothing was there yet (the first
-        round's is the baseline): a later round's three ± pairs fix the affine maps'
-        value there with six times a single point's weight. On 37 drawn units,
-        dropping it cut 0.6 s of motion and moved no estimate's error beyond its
-        scatter. A point left out for clipping would clip again.
-        """
-        design = star(centre, steps[0], steps[1], self.recipe.product.rated_current_mA)
-        todo = [p for p in design if (p != centre or with_centre) and p not in self.left_out]
-        held.extend(self._measure(motion, todo, Phase.SWEEP_STAR, centre=centre))
-        # Every hold so far on the clock as the run knows it now: the first round's
-        # holds were demodulated before the later ones had timed it.
-        clock = self._clock_phase(held)
-        self.clock_used = clock
-        points = [m.point(clock) for m in held]
-        self.observer.step(Step.ESTIMATE, f"{len(points)} points")
-        return coherent_estimate(points)
-
-    def _short_of_information(self, estimate: TrimEstimate, rounds_left: int) -> str | None:
-        """What σ is over its limit, where the rounds left could bring it within: each
-        widest star adds about what the first round knew, and σ falls as the square root
-        of it. None where σ is within its limits, or so far over them (a ruined estimate,
-        a unit whose clipping hides its harmonics) that more of the same cannot help.
-        """
-        limits, sigma = self.recipe.limits, estimate.sigma
-        offset = max(sigma.offset_a_mA, sigma.offset_b_mA)
-        gain = max(sigma.gain_a, sigma.gain_b)
-        over = [f"{name} σ {value:.3g} (limit {limit:g})" for name, value, limit in (
-            ("offset", offset, limits.max_offset_sigma_mA), ("gain", gain, limits.max_gain_sigma))
-            if value > limit]
-        reach = math.sqrt(1.0 + rounds_left)
-        if (not over or not offset <= reach * limits.max_offset_sigma_mA
-                or not gain <= reach * limits.max_gain_sigma
-                or not trims_within(limits, estimate.trims.rounded())):
-            return None
-        return " and ".join(over)
+    def _follow(self, motion: Motion, plan: Plan) -> TrimEstimate:
+        """Hold what the method asks for, batch after batch, until it has its estimate:
+        the one sweep loop, whatever the method."""
+        try:
+            batch = next(plan)
+            while True:
+                self.observer.step(Step.SWEEP, batch.label)
+                measured = self.held.measure(motion, list(batch.points), batch.phase,
+                                         centre=batch.centre,
+                                         settle_periods=batch.settle_periods,
+                                         dwell_periods=batch.dwell_periods)
+                batch = plan.send(measured)
+        except StopIteration as done:
+            estimate: TrimEstimate = done.value
+            return estimate
+        finally:
+            plan.close()
 
     def _write_and_store(self, trims: Trims) -> None:
         drive, run = self.drive, self.run_record
-        self.observer.step(Step.WRITE, _trims_text(trims))
+        self.observer.step(Step.WRITE, trims_text(trims))
         drive.write_trims(trims)
         self.observer.step(Step.STORE, "0x1010:01 save")
         self._store(drive)
@@ -778,8 +520,8 @@ class _Calibration:
         if back != trims:
             raise DeviceError(
                 drive.name,
-                f"read back, the drive holds {_trims_text(back)}, but "
-                f"{_trims_text(trims)} were written and stored: the EEPROM did not keep them",
+                f"read back, the drive holds {trims_text(back)}, but "
+                f"{trims_text(trims)} were written and stored: the EEPROM did not keep them",
             )
 
     def _store(self, drive: Drive) -> None:
@@ -810,13 +552,13 @@ class _Calibration:
         ``max_dwell_periods``; the unit is judged on the last hold.
         """
         spec = self.recipe.verification
-        self.observer.step(Step.VERIFY, _trims_text(trims))
+        self.observer.step(Step.VERIFY, trims_text(trims))
         longest = spec.max_dwell_periods or spec.dwell_periods
         with Motion(self.drive, self.session.clock,
                     on_progress=lambda done, total, _h: self.observer.progress(done, total)
                     ) as motion:
             # The unit as it ships: measured whatever it clips (counted and said).
-            measured = self._hold(motion, [trims], Phase.VERIFY,
+            measured = self.held.hold(motion, [trims], Phase.VERIFY,
                                   lead_periods=self.recipe.motion.spin_up_periods,
                                   dwell_periods=spec.dwell_periods,
                                   settle_periods=spec.settle_periods, halves=True)
@@ -824,7 +566,7 @@ class _Calibration:
             moving = self._settling(measured)
             while moving and dwelt + spec.dwell_periods <= longest:
                 # Nothing changes at the drive: the new hold needs no settle of its own.
-                again = self._hold(motion, [trims], Phase.VERIFY,
+                again = self.held.hold(motion, [trims], Phase.VERIFY,
                                    dwell_periods=spec.dwell_periods, settle_periods=0,
                                    halves=True)
                 dwelt += spec.dwell_periods
@@ -888,10 +630,10 @@ class _Calibration:
         was = run.after
         run.warnings.append(
             f"{Phase.VERIFY.value}: {' and '.join(sorted(failed))} over the limit at "
-            f"{_trims_text(stored)} (H1 {was.h1:.3g}, H2 {was.h2:.3g} m/s²); the sweep's maps "
+            f"{trims_text(stored)} (H1 {was.h1:.3g}, H2 {was.h2:.3g} m/s²); the sweep's maps "
             f"anchored on that hold put the offsets' null at {correction.null.offset_a_mA:+.1f}/"
             f"{correction.null.offset_b_mA:+.1f} mA: stored "
-            f"{_trims_text(correction.trims)} (predicted H1 {correction.h1_mps2:.3g}, "
+            f"{trims_text(correction.trims)} (predicted H1 {correction.h1_mps2:.3g}, "
             f"H2 {correction.h2_mps2:.3g} m/s²) and verified again")
         self._write_and_store(correction.trims)
         after = self._verify(correction.trims)
@@ -928,48 +670,3 @@ class _Calibration:
             )
         )
         self._store(drive)
-
-
-def _from_vertices(fits: Sequence[ParabolaFit]) -> TrimEstimate:
-    """The paper's estimate from its three parabolas, in ``_PAPER_ORDER``."""
-    a, b, g = fits
-    trims = with_split(Trims(a.vertex, b.vertex, GAIN_UNITY, GAIN_UNITY), g.vertex)
-    return TrimEstimate(
-        method=Method.PAPER,
-        trims=trims,
-        sigma=TrimSigma(a.vertex_sigma, b.vertex_sigma, g.vertex_sigma, g.vertex_sigma),
-        parabolas=(a, b, g),
-    )
-
-
-def _unclipped(found: Sequence[Measured], policy: Clipping) -> tuple[list[Measured], list[Trims]]:
-    """The holds within the recipe's share of clipped samples, and the points of the rest."""
-    used: list[Measured] = []
-    clipped: list[Trims] = []
-    for m in found:
-        if m.saturated > policy.max_share * max(1, m.segment.samples):
-            clipped.append(m.segment.trims)
-        else:
-            used.append(m)
-    return used, clipped
-
-
-def _middle(points: Sequence[Trims]) -> Trims:
-    """The middle of an axis sweep: where its clipped ends move towards."""
-    n = len(points)
-    return Trims(sum(p.offset_a_mA for p in points) / n, sum(p.offset_b_mA for p in points) / n,
-                 sum(p.gain_a for p in points) / n, sum(p.gain_b for p in points) / n)
-
-
-def _at_vertex(centre: Trims, fit: ParabolaFit) -> Trims:
-    """``centre`` moved to a parabola's vertex along its axis."""
-    if fit.axis is TrimAxis.OFFSET_A:
-        return replace(centre, offset_a_mA=fit.vertex)
-    if fit.axis is TrimAxis.OFFSET_B:
-        return replace(centre, offset_b_mA=fit.vertex)
-    return with_split(centre, fit.vertex)
-
-
-def _trims_text(t: Trims) -> str:
-    return (f"offsets {t.offset_a_mA:+.0f}/{t.offset_b_mA:+.0f} mA, "
-            f"gains {t.gain_a:.0f}/{t.gain_b:.0f}")

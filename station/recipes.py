@@ -19,29 +19,22 @@ from collections.abc import Sequence
 from dataclasses import dataclass, fields
 from importlib.resources import files
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 from station.core import (
     GAIN_LIMITS,
     GAIN_UNITY,
     SENSOR_RANGES_G,
     STANDARD_GRAVITY,
-    Method,
-    offset_limit_mA,
 )
 from station.errors import InputError
+from station.methods.tables import span
 from station.tomltable import TomlTable, toml_error
 
 RECIPE_FORMAT: Final = "station-recipe/1"
 DEFAULT_RECIPE: Final = "default"
 RECIPE_SUFFIX: Final = ".toml"
 
-# Sum of the two phase gains during the paper's gain sweep: the mean torque stays
-# constant (the paper's step 3, I21 = 2I - I11).
-GAIN_SUM: Final = 2 * GAIN_UNITY
-MAX_COHERENT_ROUNDS: Final = 5
-MAX_SIGMA_ROUNDS: Final = 3
-MAX_GAIN_STEP: Final = 5000
 
 _NAME = re.compile(r"[a-z0-9][a-z0-9_-]*")
 # ASCII digits only: ``\d`` would let other scripts' digits into a version.
@@ -79,52 +72,6 @@ class Motion:
     settle_periods: int
     dwell_periods: int
     sensor_range_g: int
-
-
-@dataclass(frozen=True)
-class PaperSweep:
-    """The paper's three sweeps, closed loop: offset A over [min, max] with B at
-    0, then B with A at its estimate, then gain A over [gain_min, gain_max] with
-    gain B = 20000 - gain A and the offsets at their estimates."""
-
-    offset_min_mA: int
-    offset_max_mA: int
-    offset_points: int
-    gain_min: int
-    gain_max: int
-    gain_points: int
-
-
-@dataclass(frozen=True)
-class CoherentSweep:
-    """One round per entry: a star design (±step on offset A, on offset B and on
-    the gain split) around the latest estimate; later rounds use smaller steps
-    to measure the slopes close to the null."""
-
-    offset_steps_mA: tuple[int, ...]
-    gain_steps: tuple[int, ...]
-    # Rounds added around the latest estimate while its σ is over the recipe's limit:
-    # a unit that moves the load little per mA (a belt) is short of information. Each
-    # is the widest of the rounds' stars that the maps still explain, which tells the
-    # slopes most per hold.
-    sigma_rounds: int = 0
-
-
-@dataclass(frozen=True)
-class MagnitudeSweep:
-    """The paper's parabolas where the drive's electrical angle is unknown (a Modbus
-    drive): per round, offset A, then offset B, then the gain split, each swept
-    over ±span in ``points`` steps around the latest estimate, so the last round's
-    parabolas sit close to the null where they are nearly exact."""
-
-    offset_spans_mA: tuple[int, ...]
-    gain_spans: tuple[int, ...]
-    points: int
-    # Holds of its own (None: the motion table's). A trim written over Modbus takes
-    # effect somewhere between its sending and its acknowledgement, and those samples
-    # are not used, so these holds cannot be as short as a CANopen star's.
-    settle_periods: int | None = None
-    dwell_periods: int | None = None
 
 
 @dataclass(frozen=True)
@@ -197,23 +144,26 @@ class Recipe:
     name: str
     version: str
     description: str
-    method: Method
+    method: str  # a calibration method's name (station.methods.SWEEPS)
     product: Product
     motion: Motion
-    sweep: PaperSweep | CoherentSweep
+    sweep: Any  # the settings of the method's own table, read by its plug-in
     self_check: SelfCheck
     verification: Verification
     limits: Limits
     source: str
     text: str
     sha256: str
-    magnitude_sweep: MagnitudeSweep | None = None  # for benches that see no drive angle
+    # The angle-free method's settings, for benches that do not see the drive's angle.
+    magnitude_sweep: Any = None
     clipping: Clipping | None = None  # None: clipped holds are used, and said
 
     @property
     def angle_free(self) -> bool:
         """Whether the recipe can calibrate a drive whose electrical angle is unknown."""
-        return isinstance(self.sweep, PaperSweep) or self.magnitude_sweep is not None
+        from station.methods import sweep_method  # noqa: PLC0415 - the plug-ins
+
+        return not sweep_method(self.method).needs_angle or self.magnitude_sweep is not None
 
     def hold_periods(self) -> int:
         """Electrical periods of one trim point: settling, then the measured dwell."""
@@ -253,115 +203,37 @@ def _read_motion(t: TomlTable, rated: int | None) -> Motion:
     return motion
 
 
-def _span(t: TomlTable, keys: tuple[str, str], values: tuple[int, int], through: int) -> None:
-    """A [min, max] pair must be ordered and contain ``through`` (nominal): the
-    paper's parabolas need the untrimmed unit's own ripple, and gain limits
-    that exclude 10000 would fail every unit that needs no gain trim."""
-    low_key, high_key = keys
-    low, high = values
-    if not t.valid(low_key, high_key):
-        return
-    if low >= high:
-        t.problem(low_key, f"must be less than {t.name(high_key)} ({high}), got {low}")
-    elif low > through:
-        t.problem(low_key, f"must be <= {through}: the range {low}..{high} must contain {through}")
-    elif high < through:
-        t.problem(high_key, f"must be >= {through}: the range {low}..{high} must contain {through}")
+def _read_sweep(root: TomlTable, method: str | None, rated: int | None) -> Any:
+    """The settings of the recipe's method, read by its plug-in (``station.methods``)
+    from the table it names; keys of the other methods that share that table are named
+    as theirs."""
+    from station.methods import SWEEPS, sweep_method  # noqa: PLC0415 - imported when read
 
-
-def _neg(value: int | None) -> int | None:
-    return None if value is None else -value
-
-
-def _read_paper_sweep(t: TomlTable, rated: int | None) -> PaperSweep:
-    half = offset_limit_mA(rated) if rated is not None else None
-    offset_note = "the drive's offset range: half of product.rated_current_mA"
-    offset_note = offset_note if half is not None else ""
-    # 20000 - g lies in 5000..15000 exactly when g does, so one range check covers
-    # both phases' gains.
-    gain_note = f"and gain B = {GAIN_SUM} - gain A must be too"
-    sweep = PaperSweep(
-        offset_min_mA=t.integer("offset_min_mA", _neg(half), half, note=offset_note),
-        offset_max_mA=t.integer("offset_max_mA", _neg(half), half, note=offset_note),
-        offset_points=t.integer("offset_points", 3, 101),
-        gain_min=t.integer("gain_min", *GAIN_LIMITS, note=gain_note),
-        gain_max=t.integer("gain_max", *GAIN_LIMITS, note=gain_note),
-        gain_points=t.integer("gain_points", 3, 101),
-    )
-    offsets = (sweep.offset_min_mA, sweep.offset_max_mA)
-    _span(t, ("offset_min_mA", "offset_max_mA"), offsets, 0)
-    _span(t, ("gain_min", "gain_max"), (sweep.gain_min, sweep.gain_max), GAIN_UNITY)
-    return sweep
-
-
-def _read_coherent_sweep(t: TomlTable, rated: int | None) -> CoherentSweep:
-    half = offset_limit_mA(rated) if rated is not None else None
-    sweep = CoherentSweep(
-        offset_steps_mA=_read_rounds(t, "offset_steps_mA", half,
-                                     "at most half of product.rated_current_mA"),
-        gain_steps=_read_rounds(t, "gain_steps", MAX_GAIN_STEP, ""),
-        sigma_rounds=t.integer("sigma_rounds", 0, MAX_SIGMA_ROUNDS) if t.has("sigma_rounds") else 0,
-    )
-    rounds_a, rounds_b = len(sweep.offset_steps_mA), len(sweep.gain_steps)
-    if t.valid("offset_steps_mA", "gain_steps") and rounds_a and rounds_b and rounds_a != rounds_b:
-        t.problem(
-            "gain_steps",
-            f"must have as many rounds as {t.name('offset_steps_mA')} ({rounds_a}), got {rounds_b}",
-        )
-    return sweep
-
-
-def _read_rounds(t: TomlTable, key: str, high: int | None, note: str) -> tuple[int, ...]:
-    steps = t.int_array(key)
-    if not t.valid(key):
-        return steps  # a mistyped element was reported already
-    if not steps:
-        t.problem(key, "must not be empty: one entry per round")
-    elif len(steps) > MAX_COHERENT_ROUNDS:
-        t.problem(key, f"must have at most {MAX_COHERENT_ROUNDS} rounds, got {len(steps)}")
-    for i, step in enumerate(steps):
-        t.check_int(f"{key}[{i}]", step, 1, high, note=note if high is not None else "")
-    return steps
-
-
-def _read_magnitude_sweep(t: TomlTable | None, rated: int | None) -> MagnitudeSweep | None:
-    if t is None:
-        return None
-    half = offset_limit_mA(rated) if rated is not None else None
-    sweep = MagnitudeSweep(
-        offset_spans_mA=_read_rounds(t, "offset_spans_mA", half,
-                                     "at most half of product.rated_current_mA"),
-        gain_spans=_read_rounds(t, "gain_spans", MAX_GAIN_STEP, ""),
-        points=t.integer("points", 3, 21),
-        settle_periods=(t.integer("settle_periods", 0, 1000) if t.has("settle_periods")
-                        else None),
-        dwell_periods=(t.integer("dwell_periods", 3, 10000) if t.has("dwell_periods")
-                       else None),
-    )
-    rounds_a, rounds_b = len(sweep.offset_spans_mA), len(sweep.gain_spans)
-    if t.valid("offset_spans_mA", "gain_spans") and rounds_a and rounds_b and rounds_a != rounds_b:
-        t.problem("gain_spans", f"must have as many rounds as {t.name('offset_spans_mA')} "
-                  f"({rounds_a}), got {rounds_b}")
-    t.finish()
-    return sweep
-
-
-def _read_sweep(
-    t: TomlTable, method: Method | None, rated: int | None
-) -> PaperSweep | CoherentSweep:
-    sweep: PaperSweep | CoherentSweep
-    if method is Method.PAPER:
-        sweep = _read_paper_sweep(t, rated)
-        other = _keys(CoherentSweep)
-    elif method is Method.COHERENT:
-        sweep = _read_coherent_sweep(t, rated)
-        other = _keys(PaperSweep)
-    else:
+    if method is None:
         # Without a valid method the sweep's keys cannot be judged; the method's
         # own error says what to fix first.
-        return CoherentSweep((), ())
-    t.finish(dict.fromkeys(other, f"not used by the {method} method"))
-    return sweep
+        root.optional_table("sweep")
+        return None
+    chosen = sweep_method(method)
+    t = root.table(chosen.table)
+    settings = chosen.read(t, rated)
+    others = [sweep_method(name) for name in SWEEPS if name != chosen.name]
+    foreign = {key: f"not used by the {method} method" for other in others
+               if other.table == chosen.table for key in _keys(other.settings_type)}
+    t.finish(foreign)
+    return settings
+
+
+def _read_angle_free(root: TomlTable, method: str | None, rated: int | None) -> Any:
+    """The angle-free method's settings (``magnitude_sweep``), for drives that do not
+    report their angle; the recipe's own where its method is that one."""
+    from station.methods import ANGLE_FREE, sweep_method  # noqa: PLC0415
+
+    angle_free = sweep_method(ANGLE_FREE)
+    if method == ANGLE_FREE:
+        return None  # the recipe's sweep is it
+    t = root.optional_table(angle_free.table)
+    return None if t is None else angle_free.read(t, rated)
 
 
 def _read_clipping(t: TomlTable | None) -> Clipping | None:
@@ -427,7 +299,7 @@ def _read_limits(t: TomlTable, rated: int | None) -> Limits:
         max_drift_offset_mA=t.real("max_drift_offset_mA", gt=0),
         max_drift_gain=t.real("max_drift_gain", gt=0),
     )
-    _span(t, ("gain_min", "gain_max"), (limits.gain_min, limits.gain_max), GAIN_UNITY)
+    span(t, ("gain_min", "gain_max"), (limits.gain_min, limits.gain_max), GAIN_UNITY)
     t.finish()
     return limits
 
@@ -455,7 +327,9 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
         root.problem("name", f"{name!r} must equal the file's name {expected_name!r}")
     version = root.string("version", pattern=_VERSION)
     description = root.string("description")
-    method = root.choice("method", Method)
+    from station.methods import SWEEPS  # noqa: PLC0415 - the plug-ins, by name
+
+    method = root.one_of("method", SWEEPS)
 
     # Product first: the drive's ranges in the other tables follow from its
     # rated current, and only a valid one may bound them.
@@ -463,8 +337,8 @@ def parse_recipe(text: str, *, source: str = "<text>", expected_name: str | None
     product = _read_product(product_table)
     rated = product.rated_current_mA if product_table.valid("rated_current_mA") else None
     motion = _read_motion(root.table("motion"), rated)
-    sweep = _read_sweep(root.table("sweep"), method, rated)
-    magnitude_sweep = _read_magnitude_sweep(root.optional_table("magnitude_sweep"), rated)
+    sweep = _read_sweep(root, method, rated)
+    magnitude_sweep = _read_angle_free(root, method, rated)
     clipping = _read_clipping(root.optional_table("clipping"))
     self_check = _read_self_check(root.table("self_check"))
     verification = _read_verification(root.table("verification"))

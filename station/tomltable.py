@@ -240,6 +240,16 @@ class TomlTable:
             self.problem(key, f"must be one of {listed}, got {value!r}")
             return None
 
+    def one_of(self, key: str, names: Collection[str]) -> str | None:
+        """One of ``names`` (a registry's), or None (with the problem recorded)."""
+        value = self.string(key)
+        if not self.valid(key):
+            return None
+        if value not in names:
+            self.problem(key, f"must be one of {', '.join(map(repr, names))}, got {value!r}")
+            return None
+        return value
+
     def has(self, key: str) -> bool:
         """Whether an optional key is present (a file that may leave it to its default)."""
         return key in self._data

@@ -15,13 +15,12 @@ from typing import Any
 
 import pytest
 
-from station.core import Method
 from station.errors import ExitCode, InputError
+from station.methods.coherent import CoherentSweep
+from station.methods.paper import PaperSweep
 from station.recipes import (
     DEFAULT_RECIPE,
     RECIPE_FORMAT,
-    CoherentSweep,
-    PaperSweep,
     RecipeError,
     Verification,
     available_recipes,
@@ -95,7 +94,7 @@ def test_both_shipped_recipes_are_available_and_default_is_one_of_them() -> None
 
 def test_paper_recipe_follows_the_paper() -> None:
     recipe = load_recipe("paper")
-    assert (recipe.name, recipe.version, recipe.method) == ("paper", "2", Method.PAPER)
+    assert (recipe.name, recipe.version, recipe.method) == ("paper", "2", "paper")
     assert recipe.product.rated_current_mA == 1000
     assert (recipe.product.microsteps, recipe.product.rotor_teeth) == (256, 50)
     assert recipe.motion.electrical_hz == 20.0 and recipe.motion.amplitude_mA == 1000
@@ -110,7 +109,7 @@ def test_paper_recipe_follows_the_paper() -> None:
 def test_default_recipe_is_coherent_with_the_paper_s_product_and_limits() -> None:
     recipe = load_recipe(DEFAULT_RECIPE)
     reference = load_recipe("paper")
-    assert recipe.method is Method.COHERENT
+    assert recipe.method == "coherent"
     # Two more rounds at most for a unit whose σ is over its limit after three.
     assert recipe.sweep == CoherentSweep(offset_steps_mA=(100, 30, 10),
                                          gain_steps=(1000, 300, 100), sigma_rounds=2)
