@@ -43,6 +43,7 @@ from station.qa import RecipeStatistics
 from station.rows import (
     LIMIT_COLUMNS,
     RESULT_COLUMNS,
+    SELECT_RUNS,
     START_COLUMNS,
     VERIFICATION_COLUMNS,
     RunFilter,
@@ -379,7 +380,7 @@ class PostgresStore:
         with self._transaction(doing) as conn:
             # One snapshot for the runs and their limit checks, whoever writes meanwhile.
             conn.execute("SET TRANSACTION ISOLATION LEVEL REPEATABLE READ")
-            rows = conn.execute(f"SELECT * FROM runs {tail}", params).fetchall()
+            rows = conn.execute(f"{SELECT_RUNS} {tail}", params).fetchall()
             ids = [row["run_id"] for row in rows]
             limits: dict[int, list[LimitCheck]] = {run_id: [] for run_id in ids}
             if ids:

@@ -226,11 +226,19 @@ def result_values(run: Run) -> dict[str, object]:
     return values
 
 
+SELECT_RUNS = ("SELECT runs.*, recipes.text AS recipe_text FROM runs "
+               "LEFT JOIN recipes ON recipes.sha256 = runs.recipe_sha256")
+"""Runs with the text of their recipe: a record carries its own meaning."""
+
+
 def run_from(row: Row, limits: Sequence[LimitCheck]) -> Run:
-    return Run(
+    """A run as its row (``SELECT_RUNS``) holds it; frozen when finished: a record is
+    never changed."""
+    run = Run(
         serial=row["serial"],
         kind=RunKind(row["kind"]),
-        recipe=RecipeRef(row["recipe_name"], row["recipe_version"], row["recipe_sha256"]),
+        recipe=RecipeRef(row["recipe_name"], row["recipe_version"], row["recipe_sha256"],
+                         row["recipe_text"]),
         station_id=row["station_id"],
         operator=row["operator"],
         software_version=row["software_version"],
@@ -258,6 +266,7 @@ def run_from(row: Row, limits: Sequence[LimitCheck]) -> Run:
         recording_sha256=row["recording_sha256"],
         motion_s=row["motion_s"],
     )
+    return run.freeze() if run.verdict is not None and run.finished_at is not None else run
 
 
 def limit_values(run_id: int, position: int, check: LimitCheck) -> dict[str, object]:

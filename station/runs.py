@@ -6,6 +6,12 @@ a device error still carries everything learnt up to that moment (trims
 before, the baseline, the recording); the store persists it and QA reads it
 back. A failed unit is data (``Verdict.FAIL`` with the limits it missed); a
 station problem is ``Verdict.ERROR`` with its reason.
+
+Once finished and recorded a run is a record, and records outlive software: a run read
+back from a store (or returned by a finished calibration) is frozen (``Run.freeze``),
+so nothing downstream can change what was recorded, and it carries its limit checks
+with their bounds and its recipe's name, version, hash and text. QA, reports and field
+service read what the record holds and never need today's recipe parser.
 """
 
 from __future__ import annotations
@@ -135,11 +141,52 @@ class Ripple:
 
 @dataclass(frozen=True)
 class RecipeRef:
-    """Which recipe a run followed: enough to find the exact text again."""
+    """Which recipe a run followed: enough to find the exact text again, and on a run
+    read back from a store the text itself (two references to one text are equal
+    whether or not they carry it)."""
 
     name: str
     version: str
     sha256: str
+    text: str | None = field(default=None, compare=False, repr=False)
+
+
+class FrozenRecord(TypeError):
+    """An attempt to change a finished run's record."""
+
+
+class _FrozenList(list[Any]):
+    """A list that refuses to change: a frozen record's warnings and fit arrays."""
+
+    def _refuse(self, *_args: object, **_kwargs: object) -> Any:
+        raise FrozenRecord("a finished run's record is not changed")
+
+    append = extend = insert = remove = pop = clear = sort = reverse = _refuse
+    __setitem__ = __delitem__ = __iadd__ = __imul__ = _refuse
+
+    def __reduce__(self) -> tuple[Any, ...]:  # pickled and copied as a whole, not by append
+        return (_FrozenList, (list(self),))
+
+
+class _FrozenDict(dict[str, Any]):
+    """A dict that refuses to change: a frozen record's fit summary."""
+
+    def _refuse(self, *_args: object, **_kwargs: object) -> Any:
+        raise FrozenRecord("a finished run's record is not changed")
+
+    __setitem__ = __delitem__ = __ior__ = clear = pop = popitem = setdefault = update = _refuse
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (_FrozenDict, (dict(self),))
+
+
+def _frozen(value: Any) -> Any:
+    """JSON-like data made unchangeable, all the way down."""
+    if isinstance(value, dict):
+        return _FrozenDict({k: _frozen(v) for k, v in value.items()})
+    if isinstance(value, list):
+        return _FrozenList(_frozen(v) for v in value)
+    return value
 
 
 @dataclass
@@ -181,6 +228,28 @@ class Run:
     recording: str | None = None  # path of the ICD.md §5 recording
     recording_sha256: str | None = None
     motion_s: float | None = None  # simulated/bench time the SYNC clock ran
+
+    def __setattr__(self, name: str, value: object) -> None:
+        if self.__dict__.get("_frozen", False):
+            raise FrozenRecord(f"run {self.run_id} of {self.serial} is a finished record: "
+                               f"its {name} is not changed")
+        object.__setattr__(self, name, value)
+
+    def freeze(self) -> Run:
+        """Make this run the record it is from now on; returns it.
+
+        Only a finished run is frozen: one still going is the procedure's to fill."""
+        if self.verdict is None or self.finished_at is None:
+            raise ValueError(f"run {self.run_id} of {self.serial} is not finished")
+        if not self.frozen:
+            self.warnings = _frozen(list(self.warnings))
+            self.fit = None if self.fit is None else _frozen(dict(self.fit))
+            object.__setattr__(self, "_frozen", True)
+        return self
+
+    @property
+    def frozen(self) -> bool:
+        return bool(self.__dict__.get("_frozen", False))
 
     @property
     def failed_limits(self) -> tuple[LimitCheck, ...]:

@@ -336,6 +336,9 @@ def _finish(store: RunStore, recipe: Recipe, run: Run, previous_trims: Trims | N
         store.finish_run(run)
     except DatabaseUnreachable as exc:
         _spool_finished(run, recipe, exc)
+    # From here on the run is its record: what the caller shows is what was recorded.
+    run.recipe = replace(run.recipe, text=recipe.text)
+    run.freeze()
 
 
 def _one_line(exc: DatabaseUnreachable) -> str:

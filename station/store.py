@@ -49,6 +49,7 @@ from station.qa import RecipeStatistics
 from station.rows import (
     LIMIT_COLUMNS,
     RESULT_COLUMNS,
+    SELECT_RUNS,
     START_COLUMNS,
     VERIFICATION_COLUMNS,
     RunFilter,
@@ -101,7 +102,6 @@ _FINISH_INTERRUPTED = (
 )
 _INSERT_LIMIT = _insert("limit_checks", LIMIT_COLUMNS)
 _INSERT_VERIFICATION = _insert("verifications", VERIFICATION_COLUMNS)
-_SELECT_RUNS = "SELECT * FROM runs"
 # One query for the limits of any number of runs: the ids travel as one JSON array.
 _SELECT_LIMITS = (
     f"SELECT {', '.join(LIMIT_COLUMNS)} FROM limit_checks "
@@ -477,7 +477,7 @@ class Store:
 
     def _runs(self, doing: str, tail: str, params: Sequence[object]) -> list[Run]:
         with self._transaction(doing) as conn:
-            rows = conn.execute(f"{_SELECT_RUNS} {tail}", params).fetchall()
+            rows = conn.execute(f"{SELECT_RUNS} {tail}", params).fetchall()
             ids = [row["run_id"] for row in rows]
             # Limit checks of all these runs in one query, grouped here by run.
             limits: dict[int, list[LimitCheck]] = {run_id: [] for run_id in ids}

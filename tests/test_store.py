@@ -7,9 +7,12 @@ would each surface months later on the line, so they are tested here.
 
 from __future__ import annotations
 
+import copy as copy_module
+import dataclasses
 import hashlib
 import math
 import os
+import pickle
 import re
 import sqlite3
 import subprocess
@@ -30,6 +33,7 @@ from station.migrations import MIGRATIONS_PACKAGE, load_migrations
 from station.owners import ProcessInfo, RunOwner, current_owner, probe_process, why_gone
 from station.rows import RunFilter, VerificationRecord
 from station.runs import (
+    FrozenRecord,
     LimitCheck,
     LimitName,
     RecipeRef,
@@ -884,9 +888,12 @@ def test_an_open_run_finished_as_interrupted_cannot_be_finished_again(db_path: P
     (run_id,) = _open_runs(db_path, {"SN1": _owner(DEAD_PID)}).values()
     with Store(db_path, owner=HERE, probe=_process_table) as store:
         _begin(store, _run("SN2"))
-        late = store.get_run(run_id)
-        late.verdict, late.reason = Verdict.PASS, "the old process came back?"
-        late.finished_at = T0
+        record = store.get_run(run_id)
+        with pytest.raises(FrozenRecord, match="finished record"):
+            record.verdict = Verdict.PASS  # the record read back refuses first
+        # A copy made to look unfinished-then-passed: the database refuses it too.
+        late = dataclasses.replace(record, verdict=Verdict.PASS, finished_at=T0,
+                                   reason="the old process came back?")
         with pytest.raises(DatabaseError, match="append-only"):
             store.finish_run(late)
         assert store.get_run(run_id).verdict is Verdict.ABORTED
@@ -1062,3 +1069,35 @@ def test_a_corrupt_database_is_a_station_error_and_is_left_untouched(tmp_path: P
     assert error.value.exit_code is ExitCode.STATION
     assert str(path) in str(error.value)
     assert path.read_bytes() == garbage
+
+
+# -- a finished run is a record ---------------------------------------------------------
+
+
+def test_a_finished_run_read_back_is_a_frozen_record_with_its_recipe_s_text(
+    db_path: Path,
+) -> None:
+    with Store(db_path, owner=HERE, probe=_process_table) as store:
+        first = _record(store, _run())
+        full = _full_run(first.run_id or 0)
+        _begin(store, full)
+        store.finish_run(full)
+        still_open = _begin(store, _run("SN2"))
+        record = store.get_run(full.run_id or 0)
+        assert not store.get_run(still_open.run_id or 0).frozen  # the procedure's to fill
+    assert record.frozen and record == full
+    _, text = _recipe()
+    assert record.recipe.text == text and record.recipe == full.recipe
+    for change in (lambda: setattr(record, "verdict", Verdict.PASS),
+                   lambda: record.warnings.append("later"),
+                   lambda: record.warnings.__setitem__(0, "edited"),
+                   lambda: (record.fit or {})["h1"].update(r2=1.0),
+                   lambda: (record.fit or {})["points"].append(4)):
+        with pytest.raises(FrozenRecord):
+            change()
+    assert record == full  # nothing changed
+    # Copied and pickled whole (process pools, reports), and still frozen.
+    for copy in (pickle.loads(pickle.dumps(record)), copy_module.deepcopy(record)):
+        assert copy == record and copy.frozen
+    with pytest.raises(ValueError, match="not finished"):
+        _run("SN3").freeze()
