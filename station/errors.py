@@ -123,10 +123,21 @@ class DatabaseError(StationError):
     def __init__(self, database: str, message: str) -> None:
         super().__init__(f"database {database}: {message}")
         self.database = database
+        self.detail = message
 
 
 class DatabaseUnreachable(DatabaseError):
     """A line's database server did not answer: the station records into its spool."""
+
+
+class DatabaseRefused(DatabaseError):
+    """A line's database that cannot be the one meant: its server refused the station
+    (credentials, role, database name), or nothing answers at a URL this station has
+    never reached (a mistyped host or port). Refused before anything runs, so it is an
+    input error (exit code 2); only a line that was reached before and went away is an
+    outage, spooled for."""
+
+    exit_code = ExitCode.USAGE
 
 
 class DatabasePathError(DatabaseError):

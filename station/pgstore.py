@@ -27,7 +27,7 @@ from uuid import UUID
 import psycopg
 from psycopg.rows import RowMaker
 
-from station.errors import DatabaseError, DatabaseUnreachable, InputError
+from station.errors import DatabaseError, DatabaseRefused, DatabaseUnreachable, InputError
 from station.migrations import MIGRATIONS_PACKAGE, Migration, load_migrations
 from station.owners import (
     InterruptedRun,
@@ -70,6 +70,11 @@ MIGRATIONS_FOLDER: Final = "postgresql"
 """The PostgreSQL schema's migrations, within the ``db`` package."""
 CONNECT_TIMEOUT_S: Final = 5
 """How long a station waits for the line's server before calling it unreachable."""
+_REFUSALS: Final = ("password authentication failed", "no pg_hba.conf entry",
+                     "does not exist", "authentication failed", "permission denied")
+"""What a server that answered says when the station's URL is wrong (libpq gives no
+SQLSTATE for a failed connection, only the server's words); anything else, a server
+starting up or shutting down among them, is an outage."""
 _MIGRATION_LOCK: Final = 0x5354_4D47  # "STMG": one migrator at a time
 _BEGIN_LOCK: Final = 0x5354_5255  # "STRU": one run begun at a time (the interrupted check)
 
@@ -148,8 +153,11 @@ class PostgresStore:
         try:
             conn = psycopg.connect(url, connect_timeout=CONNECT_TIMEOUT_S, row_factory=_rows)
         except psycopg.OperationalError as exc:
-            raise DatabaseUnreachable(self.location, f"cannot connect: {str(exc).strip()}"
-                                      ) from exc
+            message = " ".join(str(exc).split())
+            if any(words in message for words in _REFUSALS):
+                raise DatabaseRefused(self.location, f"the server refused the station: "
+                                      f"{message}") from exc
+            raise DatabaseUnreachable(self.location, f"cannot connect: {message}") from exc
         except psycopg.Error as exc:
             raise self._error("cannot connect", exc) from exc
         try:

@@ -27,6 +27,7 @@ from station.benches import BenchSession, BenchSpec, open_bench
 from station.core import Trims
 from station.errors import (
     DatabaseError,
+    DatabaseRefused,
     DatabaseUnreachable,
     IdentityMismatch,
     InputError,
@@ -144,12 +145,20 @@ def _store_for_runs(station: Station) -> Iterator[tuple[RunStore, str | None]]:
     try:
         line = open_store(target)
     except DatabaseUnreachable as exc:
+        if not spool.reached(describe(target)):
+            # Nothing answers at a URL this station never recorded into: a typo in the
+            # host or port is not an outage, and no unit is calibrated into a spool for it.
+            detail = " ".join(exc.detail.split())
+            raise DatabaseRefused(exc.database, f"{detail}; this station has never "
+                                  "reached it: check --db or STATION_DB (runs are spooled "
+                                  "only for a line's database reached before)") from exc
         why = _one_line(exc)
         log.warning("%s: recording into this station's spool %s", why, path)
         with Store(path) as spooled:
             yield spooled, (f"recorded in this station's spool ({path}) because {why}; "
                             "`station sync` forwards it")
         return
+    spool.note_reached(describe(target))
     with line:
         if path.exists():
             try:

@@ -25,6 +25,10 @@ from station.store import Store
 log = logging.getLogger(__name__)
 
 SPOOL_FILE = "spool.db"
+REACHED_FILE = "lines-reached"
+"""The line databases this station has recorded into, one (password-free) URL a line:
+only one of those that stops answering is an outage; nothing answering at a URL never
+reached is a wrong URL."""
 
 
 def spool_path() -> Path:
@@ -63,6 +67,26 @@ def _previous_uuid(spool: Store, run: Run) -> UUID | None:
     if run.previous_run_id is None:
         return None
     return spool.get_run(run.previous_run_id).run_uuid
+
+
+def note_reached(line: str) -> None:
+    """Remember that this station reached the line database ``line`` (as ``describe``
+    names it)."""
+    if reached(line):
+        return
+    path = station_home() / REACHED_FILE
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a", encoding="utf-8") as f:
+        f.write(f"{line}\n")
+
+
+def reached(line: str) -> bool:
+    """Whether this station ever recorded into the line database ``line``."""
+    try:
+        known = (station_home() / REACHED_FILE).read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        return False
+    return line in known
 
 
 def pending(spool_file: Path | None = None) -> list[Run]:

@@ -25,7 +25,7 @@ from station.pgstore import MIGRATIONS_FOLDER, PostgresStore
 from station.rows import RunFilter, VerificationRecord
 from station.runs import Run, Verdict
 from station.service import history
-from station.spool import forward, pending
+from station.spool import forward, note_reached, pending
 from station.storage import Backend, backend_of, describe, open_store, target_of
 from station.store import Store
 from station.testing.postgres import Cluster
@@ -226,9 +226,32 @@ def test_calibrate_history_and_stats_run_against_the_line_s_database(
 # -- a station whose line database does not answer --------------------------------------
 
 
-def _dead_url(cluster: Cluster) -> str:
-    """A line database nobody answers for (the cluster's port plus one, on loopback)."""
-    return f"postgresql://station:pw@127.0.0.1:{cluster.port + 1}/line"
+def _lost_line(cluster: Cluster) -> str:
+    """A line database this station recorded into before, which nobody answers for now
+    (the cluster's port plus one, on loopback): an outage."""
+    url = f"postgresql://station:pw@127.0.0.1:{cluster.port + 1}/line"
+    note_reached(describe(url))
+    return url
+
+
+def test_a_line_never_reached_or_refusing_the_station_is_refused_before_the_bench_moves(
+    postgresql_cluster: Cluster, station_home: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    mistyped = f"postgresql://station:pw@127.0.0.1:{postgresql_cluster.port + 1}/line"
+    wrong_role = postgresql_cluster.url().replace("station@", "nobody@")
+    wrong_database = postgresql_cluster.url("no_such_line")
+    for url, words in ((mistyped, "never reached it"), (wrong_role, 'role "nobody"'),
+                       (wrong_database, 'database "no_such_line"')):
+        code, out = _cli(["calibrate", "SN123", "--db", url, "--json"], monkeypatch, capsys)
+        assert code == 2 and out is None, url
+        assert words in LAST_STDERR[0] and ":pw@" not in LAST_STDERR[0]
+    # Nothing recorded anywhere, no spool, the unit never touched.
+    assert not (station_home / "spool.db").exists() and not (station_home / "recordings").exists()
+    # Once reached, the same URL going silent is an outage: the run is spooled.
+    note_reached(describe(mistyped))
+    code, doc = _cli(["calibrate", "SN123", "--db", mistyped, "--json"], monkeypatch, capsys)
+    assert code == 0 and any("spool" in w for w in doc["warnings"]), LAST_STDERR[0]
 
 
 def test_a_station_that_cannot_reach_its_line_spools_and_sync_forwards_once(
@@ -238,7 +261,7 @@ def test_a_station_that_cannot_reach_its_line_spools_and_sync_forwards_once(
     def cli(*args: str) -> tuple[int, Any]:
         return _cli(list(args), monkeypatch, capsys)
 
-    dead = _dead_url(postgresql_cluster)
+    dead = _lost_line(postgresql_cluster)
     code, first = cli("calibrate", "SN123", "--db", dead, "--json")
     assert code == 0 and first["verdict"] == "pass", LAST_STDERR[0]
     assert any("recorded in this station's spool" in w and ":pw@" not in w
@@ -290,7 +313,7 @@ def test_the_next_calibration_with_the_line_back_forwards_the_spool_first(
     postgresql_cluster: Cluster, postgresql_url: str, monkeypatch: pytest.MonkeyPatch,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    code, _ = _cli(["calibrate", "SN123", "--db", _dead_url(postgresql_cluster), "--json"],
+    code, _ = _cli(["calibrate", "SN123", "--db", _lost_line(postgresql_cluster), "--json"],
                    monkeypatch, capsys)
     assert code == 0, LAST_STDERR[0]
     code, _ = _cli(["calibrate", "SN124", "--db", postgresql_url, "--json"], monkeypatch,
@@ -318,7 +341,7 @@ def test_sync_shows_forwarded_runs_under_the_line_s_numbers(
 ) -> None:
     with PostgresStore(postgresql_url) as line:
         _record(line, _run("SN9"))  # the line's run 1, from another station
-    code, spooled = _cli(["calibrate", "SN123", "--db", _dead_url(postgresql_cluster),
+    code, spooled = _cli(["calibrate", "SN123", "--db", _lost_line(postgresql_cluster),
                           "--json"], monkeypatch, capsys)
     assert code == 0 and spooled["run_id"] == 1, LAST_STDERR[0]
     warning = next(w for w in spooled["warnings"] if "spool" in w)
