@@ -692,11 +692,14 @@ def sync_command(
     db: DbOption = None,
     list_only: Annotated[bool, typer.Option(
         "--list", help="Only show what waits in the spool; connect to nothing.")] = False,
+    source: Annotated[Path | None, typer.Option(
+        "--from", help="Forward this SQLite database's runs instead of the spool: a "
+        "station's history from before it joined the line.", metavar="FILE")] = None,
     as_json: JsonOption = False,
 ) -> None:
     """Forward the runs this station spooled while its line's database was out of reach,
     oldest first, each once; show what was forwarded and what still waits."""
-    report = sync(database_path(db), list_only=list_only)
+    report = sync(database_path(db), list_only=list_only, source=source)
     waiting = [run_dict(r) for r in report.waiting]
     if as_json:
         _emit({"line": report.line,
@@ -708,8 +711,9 @@ def sync_command(
         # Numbered as the line now numbers them: the spool's numbers mean nothing there.
         stdout.print(runs_table([run_dict(replace(f.run, run_id=f.line_run_id))
                                  for f in report.forwarded], f"forwarded to {report.line}"))
-    stdout.print(runs_table(waiting, "waiting in this station's spool") if waiting
-                 else f"nothing waits in this station's spool for {report.line}")
+    where = str(source) if source is not None else "this station's spool"
+    stdout.print(runs_table(waiting, f"waiting in {where}") if waiting
+                 else f"nothing waits in {where} for {report.line}")
 
 
 @app.command("recipes")

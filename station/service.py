@@ -460,17 +460,26 @@ class SyncReport:
     waiting: list[Run]
 
 
-def sync(db: DbTarget, *, list_only: bool = False) -> SyncReport:
+def sync(db: DbTarget, *, list_only: bool = False, source: Path | None = None) -> SyncReport:
     """Forward this station's spool to its line's database (``station sync``), or only
-    list what waits (``--list``, which needs no connection)."""
+    list what waits (``--list``, which needs no connection). ``source`` forwards another
+    SQLite database instead: a station's own history from before it joined the line."""
     if backend_of(db) is not Backend.POSTGRESQL:
         raise InputError("station sync forwards this station's spool to its line's database: "
                          "--db (or STATION_DB) must name it as a postgresql:// URL")
     from station import spool  # noqa: PLC0415 - psycopg only for a line's database
 
-    if list_only or not spool.spool_path().exists():
-        return SyncReport(describe(db), [], spool.pending())
-    with open_store(db) as line, Store(spool.spool_path()) as spooled:
+    if source is not None:
+        if not source.is_file():
+            raise InputError(f"--from {source}: no such database file")
+        if backend_of(target_of(str(source))) is not Backend.SQLITE:
+            raise InputError(f"--from {source}: a station's SQLite file is imported")
+    path = source or spool.spool_path()
+    if not path.exists():
+        return SyncReport(describe(db), [], [])
+    if list_only:
+        return SyncReport(describe(db), [], spool.pending(path))
+    with open_store(db) as line, Store(path) as spooled:
         done = spool.forward(spooled, cast("PostgresStore", line))
         waiting = spooled.unforwarded()
     return SyncReport(describe(db), done, waiting)

@@ -13,13 +13,13 @@ the next time and nothing twice.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from uuid import UUID
+from uuid import UUID, uuid5
 
 from station.paths import station_home
 from station.pgstore import PostgresStore
-from station.runs import Run
+from station.runs import Run, utc_iso
 from station.store import Store
 
 log = logging.getLogger(__name__)
@@ -47,14 +47,19 @@ class Forwarded:
 
 def forward(spool: Store, line: PostgresStore) -> list[Forwarded]:
     """Forward every finished run the spool holds and the line has not seen, oldest first;
-    each noted in the spool as soon as the line has committed it."""
+    each noted in the spool as soon as the line has committed it.
+
+    The spool may also be a station's own database from before it joined the line
+    (``station sync --from``): its runs older than run UUIDs get one derived from what
+    identifies them, the same at every import, so none is recorded twice."""
     done: list[Forwarded] = []
     for run in spool.unforwarded():
         assert run.run_id is not None  # read back from the spool
-        text = spool.recipe_text(run.recipe.sha256)
+        text = run.recipe.text or spool.recipe_text(run.recipe.sha256)
         if text is None:  # the schema's foreign key keeps every run's recipe
             raise ValueError(f"spool run {run.run_id}: its recipe text is missing")
-        line_id, new = line.forward_run(run, text, _previous_uuid(spool, run))
+        known = replace(run, run_uuid=identity(run))
+        line_id, new = line.forward_run(known, text, _previous_uuid(spool, run))
         spool.mark_forwarded(run.run_id, line.location, line_id)
         log.info("spooled run %d of %s forwarded as run %d of %s%s", run.run_id, run.serial,
                  line_id, line.location, "" if new else " (it was there already)")
@@ -62,11 +67,24 @@ def forward(spool: Store, line: PostgresStore) -> list[Forwarded]:
     return done
 
 
+_RUNS_BEFORE_UUIDS = UUID("6f1d3c52-6c1e-4c3e-9a53-0b6d2f1c7a10")
+"""The namespace of the UUIDs derived for runs recorded before runs had their own."""
+
+
+def identity(run: Run) -> UUID:
+    """The run's UUID, or for a run recorded before runs had one, a UUID derived from
+    the station, the unit, the moment it began and its number there."""
+    if run.run_uuid is not None:
+        return run.run_uuid
+    return uuid5(_RUNS_BEFORE_UUIDS, f"{run.station_id}/{run.serial}/"
+                 f"{utc_iso(run.started_at)}/{run.run_id}")
+
+
 def _previous_uuid(spool: Store, run: Run) -> UUID | None:
     """The UUID of the run a recalibration followed, which the line knows it by."""
     if run.previous_run_id is None:
         return None
-    return spool.get_run(run.previous_run_id).run_uuid
+    return identity(spool.get_run(run.previous_run_id))
 
 
 def note_reached(line: str) -> None:

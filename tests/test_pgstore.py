@@ -23,7 +23,7 @@ from station.errors import DatabaseError, DatabaseUnreachable
 from station.migrations import MIGRATIONS_PACKAGE, load_migrations
 from station.pgstore import MIGRATIONS_FOLDER, PostgresStore
 from station.rows import RunFilter, VerificationRecord
-from station.runs import Run, Verdict
+from station.runs import Run, RunKind, Verdict
 from station.service import history
 from station.spool import forward, note_reached, pending
 from station.storage import Backend, backend_of, describe, open_store, target_of
@@ -382,3 +382,42 @@ def test_a_line_lost_while_the_run_went_on_has_its_run_finished_by_sync(
     assert finished.run_id == 1 and finished.verdict is Verdict.PASS
     assert finished.trims_after is not None and finished.limits
     assert finished.recording == doc["recording"]
+
+
+def test_a_station_s_own_history_is_imported_into_the_line_once(
+    postgresql_url: str, tmp_path: Path, station_home: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    def cli(*args: str) -> tuple[int, Any]:
+        return _cli(list(args), monkeypatch, capsys)
+
+    own = tmp_path / "before-the-line.db"
+    with Store(own, owner=HERE, probe=_process_table) as lite:
+        _record(lite, _run("SN5"))
+        legacy = _run("SN7", started_at=T0 + timedelta(minutes=1))
+        legacy.run_uuid = None  # recorded before runs had a UUID of their own
+        _record(lite, legacy)
+        again = _run("SN7", started_at=T0 + timedelta(minutes=2), kind=RunKind.RECALIBRATE)
+        again.previous_run_id = legacy.run_id
+        _record(lite, again)
+    copy = tmp_path / "copy.db"  # taken before the import: it knows nothing of it
+    copy.write_bytes(own.read_bytes())
+    code, listed = cli("sync", "--from", str(own), "--list", "--db", postgresql_url, "--json")
+    assert code == 0 and [r["serial"] for r in listed["waiting"]] == ["SN5", "SN7", "SN7"]
+    code, report = cli("sync", "--from", str(own), "--db", postgresql_url, "--json")
+    assert code == 0, LAST_STDERR[0]
+    assert [f["new"] for f in report["forwarded"]] == [True, True, True]
+    with PostgresStore(postgresql_url) as line:
+        before, after = line.history("SN7")
+    assert before.run_uuid is not None and after.previous_run_id == before.run_id
+    # Imported again: the file noted what it forwarded; a copy made before the import
+    # offers every run again, and the line knows each by its UUID (derived or its own).
+    code, twice = cli("sync", "--from", str(own), "--db", postgresql_url, "--json")
+    assert code == 0 and twice["forwarded"] == [], LAST_STDERR[0]
+    code, copied = cli("sync", "--from", str(copy), "--db", postgresql_url, "--json")
+    assert code == 0 and [f["new"] for f in copied["forwarded"]] == [False] * 3
+    with PostgresStore(postgresql_url) as line:
+        assert len(line.query(RunFilter())) == 3
+    for bad in (str(tmp_path / "missing.db"), postgresql_url):
+        code, _ = cli("sync", "--from", bad, "--db", postgresql_url, "--json")
+        assert code == 2, bad
