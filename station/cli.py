@@ -42,7 +42,6 @@ from station.benches import load_bench
 from station.characterize import characterize, diagnose_recording
 from station.core import Effect, LoadKind
 from station.errors import ExitCode, InputError, StationError
-from station.procedure import Step
 from station.recipes import available_recipes, load_recipe
 from station.rows import RunFilter
 from station.run_report import (
@@ -71,6 +70,7 @@ from station.service import (
 )
 from station.signals import stop_on_signals
 from station.sim.record import SimRecordRequest, describe_unit, record_simulation
+from station.steps import Step
 from station.views import (
     diagnosis_view,
     run_view,

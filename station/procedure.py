@@ -1,21 +1,22 @@
 """The calibration of one unit on one bench, step by step, as the recipe says.
 
-Orchestration only: the maths is in ``station.analysis`` (segmenting,
-demodulation, estimators), ``station.designs`` (where to measure),
-``station.selfcheck`` and ``station.limits`` (judging), all pure; the devices
-are behind ``drivers.base``; storage is someone else's job. The procedure
-fills the caller's ``Run`` as it learns things, so when it stops on a device
-error the record still holds everything up to that point, and the whole run
-is always published as an ICD.md §5 recording, whatever happened.
+Orchestration only. The maths is in ``station.analysis`` (segmenting, demodulation,
+estimators), ``station.designs`` (where to measure), ``station.selfcheck`` and
+``station.limits`` (judging), all pure; the calibration methods' plans are in
+``station.methods``; holding points and measuring them is ``station.holding``; the
+verification is ``station.verifying``; the devices are behind ``drivers.base``;
+storage is someone else's job. The procedure fills the caller's ``Run`` as it learns
+things, so when it stops on a device error the record still holds everything up to that
+point, and the whole run is always published as an ICD.md §5 recording, whatever
+happened.
 
-Steps: identify the unit (its electronic serial must match the label, its
-ratings the recipe's product), self-check the sensor at standstill, measure
-a baseline at the trims the drive holds, run the recipe's sweeps closed loop
-(each round's points depend on the last round's estimate), estimate, judge
-the estimate, write and store the trims, reset the drive and read them back,
-verify by measuring again, judge the result, and on a pass write the
-calibration record (0x2101) and store it. The drive is disabled on the way
-out, always.
+Steps (``station.steps.Step``): identify the unit (its electronic serial must match the
+label, its ratings the recipe's product), self-check the sensor at standstill, measure
+a baseline at the trims the drive holds, run the method's sweeps closed loop (each
+batch of points depends on what the last measured), estimate, judge the estimate,
+write and store the trims, reset the drive and read them back, verify by measuring
+again, judge the result, and on a pass write the calibration record (0x2101) and store
+it. The drive is disabled on the way out, always.
 """
 
 from __future__ import annotations
@@ -26,9 +27,7 @@ import time
 from collections.abc import Iterator, Sequence, Set
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
-from enum import StrEnum
 from pathlib import Path
-from typing import Protocol
 
 from drivers.base import CalibrationRecord, Drive
 from station import __version__
@@ -36,9 +35,8 @@ from station.analysis.estimate import (
     CLIPPED_NOTE,
     TrimEstimate,
     Unsupported,
-    correction_from,
 )
-from station.analysis.pipeline import Measured, still_settling
+from station.analysis.pipeline import Measured
 from station.analysis.report import fit_summary
 from station.analysis.sampling import ClockPhase
 from station.benches import BenchSession, BenchSpec, open_bench
@@ -59,7 +57,6 @@ from station.errors import (
 )
 from station.holding import Holds
 from station.limits import (
-    RIPPLE_LIMITS,
     clipping_check,
     estimate_checks,
     ripple_checks,
@@ -77,46 +74,12 @@ from station.runs import LimitCheck, LimitName, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for
 from station.selfcheck import sensor_self_check
 from station.serials import Serial, label_for
+from station.steps import Observer, Silent, Step
+from station.verifying import Verifier
 
 log = logging.getLogger(__name__)
 
 _U16_MAX = 0xFFFF
-
-
-class Step(StrEnum):
-    """What the operator sees the station doing."""
-
-    CONNECT = "connect"
-    IDENTIFY = "identify"
-    SELF_CHECK = "sensor self-check"
-    BASELINE = "baseline"
-    SWEEP = "sweep"
-    ESTIMATE = "estimate"
-    WRITE = "write trims"
-    STORE = "store"
-    RESET = "reset"
-    READ_BACK = "read back"
-    VERIFY = "verify"
-    RECORD = "calibration record"
-    DONE = "done"
-
-
-class Observer(Protocol):
-    """Whoever shows the operator progress (the CLI's rich display, or nobody)."""
-
-    def step(self, step: Step, detail: str) -> None: ...
-
-    def progress(self, done: int, total: int) -> None: ...
-
-
-class Silent:
-    """An observer for callers that show nothing (tests, benchmarks)."""
-
-    def step(self, step: Step, detail: str) -> None:
-        log.info("%s: %s", step.value, detail)
-
-    def progress(self, done: int, total: int) -> None:
-        """Nothing to show."""
 
 
 @dataclass(frozen=True)
@@ -125,10 +88,6 @@ class CalibrationRequest:
     recipe: Recipe
     bench: BenchSpec
     recording: Path
-
-
-class NoMeasurement(DeviceError):
-    """A hold produced no usable steady segment: the bench, not the unit, let us down."""
 
 
 @contextmanager
@@ -243,7 +202,6 @@ class _Calibration:
         self.record_before: CalibrationRecord | None = None
         self.eeprom_touched = False  # a store was sent: the EEPROM may differ from before
         self.clock_used: ClockPhase | None = None  # the clock the last estimate's phasors used
-        self.verified: Measured | None = None  # the hold the verdict was judged on
 
     @property
     def held(self) -> Holds:
@@ -393,10 +351,13 @@ class _Calibration:
             self._judge(checks)
             return
         self._write_and_store(stored)
-        after = self._verify(stored)
-        checks = (*checks, *ripple_checks(self.recipe.limits, run.before, after, self._hidden()))
+        verifier = Verifier(self.recipe, run, self.session, drive=self.drive,
+                            observer=self.observer, holds=self.held, store=self._write_and_store)
+        after = verifier.verify(stored)
+        checks = (*checks, *ripple_checks(self.recipe.limits, run.before, after,
+                                          verifier.hidden()))
         for _ in range(self.recipe.verification.max_corrections):
-            corrected = self._correct(estimate, stored, checks)
+            corrected = verifier.correct(estimate, stored, checks, self.clock_used)
             if corrected is None:
                 break
             stored, checks = corrected
@@ -539,122 +500,6 @@ class _Calibration:
         except StationError:
             self.eeprom_touched = touched
             raise
-
-    def _verify(self, trims: Trims) -> Ripple:
-        """Measure the stored trims as the drive runs them after its reset.
-
-        The drive starts from standstill after its reset, and some units ring down from
-        that start for longer than any fixed settle that suits the rest: a detent disk
-        (development seed 100830014) still read 0.082 m/s² of H1 after 4 + 4 periods,
-        against 0.015 at its steady state. So the hold goes on, in holds of the same
-        length at the same trims (the motor keeps turning between them), while its two
-        halves still differ where that could decide the verdict, up to the recipe's
-        ``max_dwell_periods``; the unit is judged on the last hold.
-        """
-        spec = self.recipe.verification
-        self.observer.step(Step.VERIFY, trims_text(trims))
-        longest = spec.max_dwell_periods or spec.dwell_periods
-        with Motion(self.drive, self.session.clock,
-                    on_progress=lambda done, total, _h: self.observer.progress(done, total)
-                    ) as motion:
-            # The unit as it ships: measured whatever it clips (counted and said).
-            measured = self.held.hold(motion, [trims], Phase.VERIFY,
-                                  lead_periods=self.recipe.motion.spin_up_periods,
-                                  dwell_periods=spec.dwell_periods,
-                                  settle_periods=spec.settle_periods, halves=True)
-            dwelt = spec.dwell_periods
-            moving = self._settling(measured)
-            while moving and dwelt + spec.dwell_periods <= longest:
-                # Nothing changes at the drive: the new hold needs no settle of its own.
-                again = self.held.hold(motion, [trims], Phase.VERIFY,
-                                   dwell_periods=spec.dwell_periods, settle_periods=0,
-                                   halves=True)
-                dwelt += spec.dwell_periods
-                if not again:
-                    break  # the warning says why; the last hold measured stands
-                measured, moving = again, self._settling(again)
-        if not measured:
-            raise NoMeasurement(
-                self.session.sensor.name,
-                "the verification run gave no steady segment: " + "; ".join(
-                    w for w in self.run_record.warnings if w.startswith(Phase.VERIFY.value)),
-            )
-        period_s = 1.0 / self.electrical_hz
-        if dwelt > spec.dwell_periods:
-            self.run_record.warnings.append(
-                f"{Phase.VERIFY.value}: the unit was still settling after its reset; "
-                f"measured for {dwelt * period_s:.2f} s instead of "
-                f"{spec.dwell_periods * period_s:.2f} s and judged on the last "
-                f"{spec.dwell_periods * period_s:.2f} s"
-            )
-        if moving:
-            orders = " and ".join(f"H{k}" for k in moving)
-            self.run_record.warnings.append(
-                f"{Phase.VERIFY.value}: {orders} still moved at the end of "
-                f"{dwelt * period_s:.2f} s of verification (the recipe's longest); the "
-                "ripple after is what the last hold measured"
-            )
-        self.verified = measured[0]
-        h = measured[0].harmonics
-        after = Ripple(abs(h.h(1)), abs(h.h(2)))
-        self.run_record.after = after
-        return after
-
-    def _correct(self, estimate: TrimEstimate, stored: Trims, checks: Sequence[LimitCheck]
-                 ) -> tuple[Trims, tuple[LimitCheck, ...]] | None:
-        """Trims corrected from a verification that failed only on its ripple, stored and
-        verified again; None where no correction can help.
-
-        The verification is one more hold, at the trims the unit ships with and near
-        the null, so its phasors say where the null is more closely than the sweep's
-        far points did (``correction_from``). A unit whose maps predict a ripple over a
-        limit even at the corrected trims (an irreducible H2, say) is not moved: it
-        fails as measured, and its failing costs no further motion.
-        """
-        failed = {c.name for c in checks if c.passed is False}
-        if not failed or not failed <= RIPPLE_LIMITS or self.verified is None:
-            return None
-        run = self.run_record
-        assert run.after is not None
-        if verdict_for(ripple_checks(self.recipe.limits, run.before, run.after)) is Verdict.PASS:
-            return None  # failed on what clipping may hide, which no trim moves
-        correction = correction_from(estimate, self.verified.point(self.clock_used))
-        limits = self.recipe.limits
-        if (correction is None or correction.trims == stored
-                or correction.h1_mps2 > limits.max_h1_after_mps2
-                or correction.h2_mps2 > limits.max_h2_after_mps2):
-            return None
-        checks = estimate_checks(limits, estimate, correction.trims)
-        if verdict_for(checks) is Verdict.FAIL:
-            return None  # out of the recipe's bounds: the unit keeps what was verified
-        was = run.after
-        run.warnings.append(
-            f"{Phase.VERIFY.value}: {' and '.join(sorted(failed))} over the limit at "
-            f"{trims_text(stored)} (H1 {was.h1:.3g}, H2 {was.h2:.3g} m/s²); the sweep's maps "
-            f"anchored on that hold put the offsets' null at {correction.null.offset_a_mA:+.1f}/"
-            f"{correction.null.offset_b_mA:+.1f} mA: stored "
-            f"{trims_text(correction.trims)} (predicted H1 {correction.h1_mps2:.3g}, "
-            f"H2 {correction.h2_mps2:.3g} m/s²) and verified again")
-        self._write_and_store(correction.trims)
-        after = self._verify(correction.trims)
-        return correction.trims, (*checks, *ripple_checks(limits, run.before, after,
-                                                          self._hidden()))
-
-    def _hidden(self) -> float:
-        """What the judged verification hold's clipping may hide, said where it is any."""
-        judged = self.verified
-        if judged is None or not judged.hidden:
-            return 0.0
-        self.run_record.warnings.append(
-            f"{Phase.VERIFY.value}: {judged.saturated} samples over the sensor's "
-            f"±{self.recipe.motion.sensor_range_g} g may hide up to {judged.hidden:.3g} m/s² of "
-            "each harmonic; the unit is judged on the most it could have")
-        return judged.hidden
-
-    def _settling(self, measured: Sequence[Measured]) -> tuple[int, ...]:
-        limits = self.recipe.limits
-        return still_settling(measured[0], (limits.max_h1_after_mps2, limits.max_h2_after_mps2)
-                              ) if measured else ()
 
     def _write_calibration_record(self) -> None:
         """0x2101: when, where and how often; stored, so the unit carries its own history."""

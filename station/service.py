@@ -37,7 +37,6 @@ from station.limits import drift, drift_warnings
 from station.paths import default_database, station_home
 from station.procedure import (
     CalibrationRequest,
-    Observer,
     calibrate_unit,
     check_identity,
     unit_on_bench,
@@ -55,6 +54,7 @@ from station.recording import metadata_path_for
 from station.rows import RunFilter, VerificationRecord
 from station.runs import RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
+from station.steps import Observer
 from station.storage import (
     Backend,
     DbTarget,

@@ -28,7 +28,6 @@ from station.cli import main
 from station.core import STANDARD_GRAVITY, LoadKind, Trims
 from station.limits import trims_within
 from station.physics.optimum import optimal_trims, steady_harmonics, steady_reading
-from station.procedure import Step
 from station.recipes import load_recipe
 from station.recording import read_metadata
 from station.runs import LimitName, Run, Verdict
@@ -39,6 +38,7 @@ from station.sim.bench import SimBench
 from station.sim.population import LineKind, draw_line_unit
 from station.sim.record import describe_unit
 from station.simsettings import SimSettings
+from station.steps import Step
 from station.store import Store
 
 OFFSET_TOLERANCE_mA = 3.0

@@ -20,7 +20,6 @@ from station import benches
 from station.analysis.commanded import DRIVE_COMMANDS_KEY
 from station.analysis.pipeline import AnalysisOptions, analyze
 from station.analysis.reader import read_recording
-from station.procedure import Step
 from station.recording import read_metadata
 from station.runs import Verdict
 from station.serials import parse_serial
@@ -28,6 +27,7 @@ from station.service import Station, calibrate
 from station.sim import bench as simulator
 from station.sim.bench import SimBench
 from station.sim.record import describe_unit
+from station.steps import Step
 from station.store import Store
 from tests.test_calibrate import GAIN_TOLERANCE, LAST_STDERR, OFFSET_TOLERANCE_mA, _run
 

@@ -19,12 +19,12 @@ import pytest
 from station import benches
 from station.benches import SIM_MODBUS_SPEC, SIM_SPEC, BenchSpec, parse_bench
 from station.core import NOMINAL_TRIMS
-from station.procedure import Step
 from station.runs import Run, Verdict
 from station.service import Station, calibrate
 from station.sim import bench as simulator
 from station.sim.bench import SimBench, TrimsLeft
 from station.simsettings import Fault, FaultKind, SimSettings
+from station.steps import Step
 from station.store import Store
 
 SERIAL = "SN123"
