@@ -95,11 +95,11 @@ def nothing_left_open(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
 
 
 @pytest.fixture(scope="session")
-def postgresql_cluster() -> Iterator[Cluster]:
-    """A real PostgreSQL server for the session, on loopback; stopped at the end.
+def postgresql_binaries() -> Path:
+    """The PostgreSQL server's binaries.
 
-    Without the server's binaries the tests that need it are skipped, except under CI
-    (``CI`` set), whose set-up installs them: there a missing server is a failure.
+    Without them the tests that need a server are skipped, except under CI (``CI``
+    set), whose set-up installs them: there a missing server is a failure.
     """
     binaries = server_binaries()
     if binaries is None:
@@ -107,7 +107,13 @@ def postgresql_cluster() -> Iterator[Cluster]:
         if os.environ.get("CI"):
             pytest.fail(message)
         pytest.skip(message)
-    with throwaway_cluster(binaries) as cluster:
+    return binaries
+
+
+@pytest.fixture(scope="session")
+def postgresql_cluster(postgresql_binaries: Path) -> Iterator[Cluster]:
+    """A real PostgreSQL server for the session, on loopback; stopped at the end."""
+    with throwaway_cluster(postgresql_binaries) as cluster:
         yield cluster
 
 

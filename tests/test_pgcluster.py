@@ -19,26 +19,14 @@ from station.testing.postgres import (
     FOLDER_PREFIX,
     OWNER_FILE,
     remove_orphans,
-    server_binaries,
     throwaway_cluster,
 )
 
 
-@pytest.fixture
-def binaries() -> Path:
-    found = server_binaries()
-    if found is None:
-        message = "PostgreSQL's server binaries are not installed (Debian: postgresql)"
-        if os.environ.get("CI"):
-            pytest.fail(message)
-        pytest.skip(message)
-    return found
-
-
 def test_a_stopped_server_is_unreachable_and_answers_again_once_started(
-    binaries: Path,
+    postgresql_binaries: Path,
 ) -> None:
-    with throwaway_cluster(binaries) as cluster:
+    with throwaway_cluster(postgresql_binaries) as cluster:
         with PostgresStore(cluster.url()) as store:
             version = store.schema_version
         cluster.stop()
@@ -60,9 +48,9 @@ with throwaway_cluster(Path(sys.argv[1])) as cluster:
 
 
 def test_a_cluster_whose_session_was_killed_is_stopped_and_removed_by_the_next(
-    binaries: Path,
+    postgresql_binaries: Path,
 ) -> None:
-    session = subprocess.Popen([sys.executable, "-c", _SESSION, str(binaries)],
+    session = subprocess.Popen([sys.executable, "-c", _SESSION, str(postgresql_binaries)],
                                stdout=subprocess.PIPE, text=True)
     try:
         assert session.stdout is not None
