@@ -131,11 +131,20 @@ def _stoppable() -> Iterator[None]:
         raise CommandAborted(f"aborted: {str(exc) or 'by the operator'}") from exc
 
 
+def _print_version(wanted: bool) -> None:
+    if wanted:
+        stdout.print(__version__)
+        raise typer.Exit
+
+
 @app.callback()
 def _configure(
     verbose: Annotated[
         int, typer.Option("--verbose", "-v", count=True, help="More log detail on stderr.")
     ] = 0,
+    _version: Annotated[bool, typer.Option(
+        "--version", callback=_print_version, is_eager=True,
+        help="Print the station software version and exit.")] = False,
 ) -> None:
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(

@@ -109,6 +109,8 @@ def verify_dict(result: Verification) -> dict[str, Any]:
     return {
         "serial": r.serial,
         "match": r.match,
+        # The unit has a recorded calibration to compare with (false: never calibrated here).
+        "recorded": r.recorded_trims is not None,
         "drive_trims": r.drive_trims.as_dict(),
         "recorded_trims": r.recorded_trims.as_dict() if r.recorded_trims is not None else None,
         "recorded_run_id": r.recorded_run_id,

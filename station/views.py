@@ -143,8 +143,12 @@ def verify_view(doc: dict[str, Any]) -> Group:
     record = doc["calibration_record"]
     table.add_row("0x2101 in the drive", f"calibrated at {record['calibrated_at'] or 'never'}, "
                   f"station {record['station_id']}, count {record['count']}")
-    word = "match" if doc["match"] else "mismatch"
+    # A unit never calibrated has nothing to mismatch: it says so, and what to do.
+    word = "match" if doc["match"] else "mismatch" if recorded else "no record"
     style = "bold white on green" if doc["match"] else "bold white on red"
+    if recorded is None:
+        table.add_row("next", f"no calibration of {doc['serial']} is recorded in this "
+                      f"database: run `station calibrate {doc['serial']}`")
     return Group(table, Panel(Align.center(Text(f"  {doc['serial']}: {word.upper()}  ",
                                                 style=style))))
 

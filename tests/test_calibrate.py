@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from drivers.base import DriveState, decode_statusword
-from station import benches
+from station import __version__, benches
 from station.cli import main
 from station.core import STANDARD_GRAVITY, LoadKind, Trims
 from station.limits import trims_within
@@ -694,3 +694,27 @@ def test_a_recording_is_never_overwritten_by_a_run_of_the_same_number(
     assert code == 0 and doc["run_id"] == 1, LAST_STDERR[0]
     assert Path(doc["recording"]).name == f"SN123-run000001-{doc['run_uuid']}.blf"
     assert older.read_bytes() == b"a recording of an earlier database"
+
+
+def test_verify_of_a_unit_never_calibrated_says_no_record_and_what_to_do(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, doc = _run(["verify", "SN777", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 1 and doc["match"] is False and doc["recorded"] is False
+    assert doc["recorded_trims"] is None
+    monkeypatch.setattr(sys, "argv", ["station", "verify", "SN777", "--db", str(db)])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    shown = " ".join(capsys.readouterr().out.split())
+    assert stop.value.code == 1 and "NO RECORD" in shown and "MISMATCH" not in shown
+    assert "station calibrate SN777" in shown
+
+
+def test_station_version_prints_the_software_version(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setattr(sys, "argv", ["station", "--version"])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    assert stop.value.code in (0, None)
+    assert capsys.readouterr().out.strip() == __version__
