@@ -46,9 +46,11 @@ from station.recipes import available_recipes, load_recipe
 from station.rows import RunFilter
 from station.run_report import (
     CSV_COLUMNS,
+    STATS_CSV_COLUMNS,
     calibration_dict,
     run_csv_row,
     run_dict,
+    stats_csv_rows,
     stats_dict,
     verify_dict,
 )
@@ -71,6 +73,7 @@ from station.service import (
 from station.signals import stop_on_signals
 from station.sim.record import SimRecordRequest, describe_unit, record_simulation
 from station.steps import Step
+from station.storage import describe
 from station.views import (
     diagnosis_view,
     run_view,
@@ -602,6 +605,11 @@ def _print_runs(runs: Sequence[Run], output: OutputFormat, title: str, *,
 
 
 def _output(output: OutputFormat, as_json: bool) -> OutputFormat:
+    """``--json`` is the short form of ``--format json``; asked for with another format it
+    is refused rather than one of them silently winning."""
+    if as_json and output not in (OutputFormat.TABLE, OutputFormat.JSON):
+        raise InputError(f"--json is --format json: give --json or --format {output.value}, "
+                         "not both")
     return OutputFormat.JSON if as_json else output
 
 
@@ -618,9 +626,15 @@ def history_command(
 ) -> None:
     """Every run of one unit, oldest first (on a line's database: at every station, or
     at one with --station)."""
-    runs = history(database_path(db), serial, station_id=station)
-    _print_runs(runs, _output(output, as_json), f"history of {parse_serial(serial)}",
-                one_unit=True)
+    chosen = _output(output, as_json)
+    target = database_path(db)
+    runs = history(target, serial, station_id=station)
+    if not runs and chosen is OutputFormat.TABLE:
+        # An empty table reads like a display fault; machines still get [] or a header.
+        at = f" at station {station}" if station is not None else ""
+        stdout.print(f"no runs of {parse_serial(serial)}{at} are recorded in {describe(target)}")
+        return
+    _print_runs(runs, chosen, f"history of {parse_serial(serial)}", one_unit=True)
 
 
 def _moment(text: str | None, *, end_of_day: bool) -> datetime | None:
@@ -688,12 +702,20 @@ def stats_command(
     recipe: RecipeFilter = None,
     station: StationFilter = None,
     db: DbOption = None,
+    output: FormatOption = OutputFormat.TABLE,
     as_json: JsonOption = False,
 ) -> None:
     """Per recipe version: mean, standard deviation and Cpk of trims and residual ripple."""
+    chosen = _output(output, as_json)
     run_filter = _filter(since, until, recipe, None, station, None, None)
     docs = [stats_dict(s) for s in statistics(database_path(db), run_filter)]
-    _emit(docs, as_json, human=stats_view(docs))
+    if chosen is OutputFormat.CSV:
+        # One row per recipe version and quantity: what a spreadsheet pivots on.
+        writer = csv.writer(sys.stdout, lineterminator="\n")
+        writer.writerow(STATS_CSV_COLUMNS)
+        writer.writerows(stats_csv_rows(docs))
+        return
+    _emit(docs, chosen is OutputFormat.JSON, human=stats_view(docs))
 
 
 @app.command("sync")

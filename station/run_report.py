@@ -10,6 +10,7 @@ drive holds after the run (null when the run stored none).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import asdict
 from datetime import UTC, datetime
 from typing import Any
@@ -126,6 +127,17 @@ def verify_dict(result: Verification) -> dict[str, Any]:
         "verified_at": utc_iso(r.verified_at),
         "station": r.station_id,
     }
+
+
+STATS_CSV_COLUMNS = ("recipe", "recipe_version", "recipe_sha256", "runs", "quantity", "n",
+                     "mean", "std", "low", "high", "cpk")
+
+
+def stats_csv_rows(docs: Sequence[dict[str, Any]]) -> list[list[Any]]:
+    """``stats --format csv``: one row per recipe version and quantity (empty: none)."""
+    return [[d["recipe"], d["recipe_version"], d["recipe_sha256"], d["runs"], name,
+             *("" if c[k] is None else c[k] for k in ("n", "mean", "std", "low", "high", "cpk"))]
+            for d in docs for name, c in d["quantities"].items()]
 
 
 def stats_dict(s: RecipeStatistics) -> dict[str, Any]:

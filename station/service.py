@@ -202,6 +202,16 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
             if spooled is not None:
                 where = (f"in this station's spool {store.location} (the line's database "
                          f"{describe(station.db_path)} did not answer)")
+            runs = store.history(serial.label)
+            if runs:
+                # Its history lists runs: say why none of them counts as a calibration.
+                last = runs[-1]
+                verdict = last.verdict.value if last.verdict is not None else "still open"
+                raise InputError(
+                    f"{serial} has {len(runs)} run(s) {where} but none stored trims (the "
+                    f"last, run {last.run_id}: {verdict}"
+                    f"{f', {last.reason}' if last.reason else ''}); run `station calibrate "
+                    f"{serial}`, or use --force to recalibrate it anyway")
             raise InputError(
                 f"{serial} has no recorded calibration {where}; use --force to calibrate it "
                 "anyway"

@@ -321,3 +321,10 @@ def test_an_unknown_method_is_a_usage_error(
 ) -> None:
     err = _refused([str(recordings.calibration), "--method", "guess"], monkeypatch, capsys)
     assert "guess" in err
+
+
+def test_a_recording_that_does_not_exist_is_named_as_such(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
+) -> None:
+    err = _refused([str(tmp_path / "nope.blf")], monkeypatch, capsys)
+    assert "nope.blf: no such recording" in err and "metadata" not in err

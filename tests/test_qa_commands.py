@@ -6,7 +6,9 @@ means, deviations and Cpk can be computed by hand.
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import json
 import math
 import statistics
@@ -226,3 +228,42 @@ def test_runs_of_a_recipe_this_version_no_longer_reads_keep_every_qa_command_wor
     doc = json.loads(out)
     assert code == 0, doc["reason"]
     assert doc["previous_trims"]["offset_a_mA"] == OFFSETS_A[3]
+
+
+def test_stats_gives_csv_one_row_per_recipe_version_and_quantity(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out = _cli(["stats", "--db", str(db), "--format", "csv"], monkeypatch, capsys)
+    assert code == 0
+    header, *rows = list(csv.reader(io.StringIO(out)))
+    assert header[:5] == ["recipe", "recipe_version", "recipe_sha256", "runs", "quantity"]
+    assert [r[4] for r in rows] == ["offset_a_mA", "offset_b_mA", "gain_a", "gain_b",
+                                    "h1_after_mps2", "h2_after_mps2"]
+    offset = dict(zip(header, rows[0], strict=True))
+    assert int(offset["n"]) == 4 and float(offset["mean"]) == pytest.approx(
+        statistics.mean(OFFSETS_A))
+    code, out = _cli(["stats", "--db", str(db), "--format", "json"], monkeypatch, capsys)
+    assert code == 0 and json.loads(out)[0]["runs"] == 5
+
+
+@pytest.mark.parametrize("command", [["stats"], ["query"], ["history", "SN503"]])
+def test_json_together_with_another_format_is_refused(
+    db: Path, command: list[str], monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.setattr(sys, "argv", ["station", *command, "--db", str(db), "--json",
+                                      "--format", "csv"])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    captured = capsys.readouterr()
+    assert stop.value.code == 2 and captured.out == ""
+    assert "--json is --format json" in " ".join(captured.err.split())
+
+
+def test_history_of_a_serial_without_runs_says_so(
+    db: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out = _cli(["history", "SN999", "--db", str(db)], monkeypatch, capsys)
+    assert code == 0 and f"no runs of SN999 are recorded in {db}" in " ".join(out.split())
+    code, out = _cli(["history", "SN999", "--db", str(db), "--json"], monkeypatch, capsys)
+    assert code == 0 and json.loads(out) == []

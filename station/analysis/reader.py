@@ -44,6 +44,7 @@ from station.recording import (
     LogFormat,
     RecordingMetadata,
     log_format_for,
+    metadata_path_for,
     read_metadata,
 )
 
@@ -77,6 +78,9 @@ class LogFrames:
 def read_recording(log_path: Path) -> Timeline:
     """The sample timeline of a recording (log plus metadata beside it)."""
     log_format = log_format_for(log_path)
+    if not log_path.exists() and not metadata_path_for(log_path).exists():
+        # Neither half is there: that its metadata is missing would only confuse.
+        raise RecordingError(f"{log_path}: no such recording")
     metadata = read_metadata(log_path)
     frames = read_log_frames(log_path, log_format, metadata)
     timeline = build_timeline(
