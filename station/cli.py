@@ -223,7 +223,8 @@ def sim_record(
         list[str] | None,
         typer.Option(
             "--effect",
-            help="Physics to switch on (repeatable; 'none' for none). Default: the unit's own.",
+            help="Physics to switch on (repeatable; 'none' for none): "
+            f"{', '.join(e.value for e in Effect)}. Default: the unit's own.",
         ),
     ] = None,
     seed: Annotated[
@@ -279,7 +280,8 @@ def sim_unit(
     effect: Annotated[
         list[str] | None,
         typer.Option(
-            "--effect", help="Override the unit's concealed effects (repeatable; 'none' for none)."
+            "--effect", help="Override the unit's concealed effects (repeatable; 'none' for "
+            f"none): {', '.join(e.value for e in Effect)}."
         ),
     ] = None,
     load: Annotated[

@@ -359,3 +359,15 @@ def test_a_sync_is_recorded_before_the_answers_to_it_however_late_the_station_he
     assert len(samples) == schedule.cycles
     for _, frames in samples:
         assert {SENSOR_TPDO1, DRIVE_TPDO1, DRIVE_TPDO2} <= set(frames)
+
+
+@pytest.mark.parametrize("command", [["sim", "record"], ["sim", "unit"]])
+def test_effect_help_lists_every_effect_id(
+    command: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("COLUMNS", "400")
+    monkeypatch.setattr(sys, "argv", ["station", *command, "--help"])
+    with pytest.raises(SystemExit):
+        main()
+    shown = " ".join(capsys.readouterr().out.split())
+    assert all(effect.value in shown for effect in Effect), shown
