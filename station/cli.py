@@ -101,7 +101,10 @@ sim_app = typer.Typer(
 )
 app.add_typer(sim_app, name="sim")
 
-JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON document on stdout.")]
+FLAG = ""
+"""A flag's help shows no type: it takes no value."""
+JsonOption = Annotated[bool, typer.Option("--json", help="Print one JSON document on stdout.",
+                                          metavar=FLAG)]
 NO_EFFECTS = "none"
 
 _TYPER_INTERRUPTED = 130
@@ -143,10 +146,11 @@ def _print_version(wanted: bool) -> None:
 @app.callback()
 def _configure(
     verbose: Annotated[
-        int, typer.Option("--verbose", "-v", count=True, help="More log detail on stderr.")
+        int, typer.Option("--verbose", "-v", count=True, metavar=FLAG,
+                         help="More log detail on stderr (twice: more).")
     ] = 0,
     _version: Annotated[bool, typer.Option(
-        "--version", callback=_print_version, is_eager=True,
+        "--version", metavar=FLAG, callback=_print_version, is_eager=True,
         help="Print the station software version and exit.")] = False,
 ) -> None:
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
@@ -404,7 +408,8 @@ def _analysis_tables(doc: dict[str, Any]) -> Group:
     return Group(head, points, *notes)
 
 
-NoReportOption = Annotated[bool, typer.Option("--no-report", help="Write no HTML report.")]
+NoReportOption = Annotated[bool, typer.Option("--no-report", help="Write no HTML report.",
+                                              metavar=FLAG)]
 
 
 @app.command("diagnose")
@@ -558,7 +563,8 @@ def recalibrate_command(
         str, typer.Option("--reason", help="Why the unit is recalibrated (recorded).")
     ],
     force: Annotated[
-        bool, typer.Option("--force", help="Calibrate even though the unit has no record here.")
+        bool, typer.Option("--force", metavar=FLAG,
+                           help="Calibrate even though the unit has no record here.")
     ] = False,
     recipe: Annotated[
         str | None,
@@ -724,7 +730,8 @@ def stats_command(
 def sync_command(
     db: DbOption = None,
     list_only: Annotated[bool, typer.Option(
-        "--list", help="Only show what waits in the spool; connect to nothing.")] = False,
+        "--list", metavar=FLAG,
+        help="Only show what waits in the spool; connect to nothing.")] = False,
     source: Annotated[Path | None, typer.Option(
         "--from", help="Forward this SQLite database's runs instead of the spool: a "
         "station's history from before it joined the line.", metavar="FILE")] = None,

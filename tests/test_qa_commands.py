@@ -267,3 +267,14 @@ def test_history_of_a_serial_without_runs_says_so(
     assert code == 0 and f"no runs of SN999 are recorded in {db}" in " ".join(out.split())
     code, out = _cli(["history", "SN999", "--db", str(db), "--json"], monkeypatch, capsys)
     assert code == 0 and json.loads(out) == []
+
+
+@pytest.mark.parametrize("command", [["history"], ["stats"], ["calibrate"], ["sync"]])
+def test_flags_show_no_value_type_in_help(
+    command: list[str], monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    monkeypatch.setenv("COLUMNS", "200")
+    code, out = _cli([*command, "--help"], monkeypatch, capsys)
+    assert code == 0 and "--json" in out
+    json_line = next(line for line in out.splitlines() if "--json" in line)
+    assert "<bool>" not in json_line and "<int>" not in json_line
