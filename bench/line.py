@@ -59,23 +59,20 @@ def _calibration_like(station_id: int, i: int) -> Run:
 
 def _results(run: Run, i: int) -> None:
     """What a passing calibration fills in: a dozen limit checks, trims, ripple, fit."""
-    checks = [LimitCheck(LimitName.ESTIMATE, 1.0, None, None, "", True)]
-    for name, value, bound, unit in (
-        (LimitName.OFFSET_A, 40.0 + i % 50, 250.0, "mA"),
-        (LimitName.OFFSET_B, -30.0 + i % 40, 250.0, "mA"),
-        (LimitName.GAIN_A, 10010.0, 10500.0, "units"),
-        (LimitName.GAIN_B, 9990.0, 10500.0, "units"),
-        (LimitName.OFFSET_SIGMA, 0.4, 2.0, "mA"),
-        (LimitName.GAIN_SIGMA, 1.5, 10.0, "units"),
-        (LimitName.H1_AFTER, 0.02, 0.08, "m/s²"),
-        (LimitName.H2_AFTER, 0.01, 0.08, "m/s²"),
-    ):
-        low = 9500.0 if unit == "units" and name in (LimitName.GAIN_A, LimitName.GAIN_B) else (
-            -bound if unit == "mA" and name is not LimitName.OFFSET_SIGMA else None)
-        checks.append(LimitCheck(name, value, low, bound, unit, True))
-    checks.append(LimitCheck(LimitName.FIT_R2, 0.995, 0.9, None, "", True))
-    checks.append(LimitCheck(LimitName.H1_REDUCTION, 22.0, 6.0, None, "dB", True))
-    run.limits = tuple(checks)
+    run.limits = tuple(LimitCheck(name, value, low, high, unit, True)
+                       for name, value, low, high, unit in (
+        (LimitName.ESTIMATE, 1.0, None, None, ""),
+        (LimitName.OFFSET_A, 40.0 + i % 50, -250.0, 250.0, "mA"),
+        (LimitName.OFFSET_B, -30.0 + i % 40, -250.0, 250.0, "mA"),
+        (LimitName.GAIN_A, 10010.0, 9500.0, 10500.0, "units"),
+        (LimitName.GAIN_B, 9990.0, 9500.0, 10500.0, "units"),
+        (LimitName.OFFSET_SIGMA, 0.4, None, 2.0, "mA"),
+        (LimitName.GAIN_SIGMA, 1.5, None, 10.0, "units"),
+        (LimitName.H1_AFTER, 0.02, None, 0.08, "m/s²"),
+        (LimitName.H2_AFTER, 0.01, None, 0.08, "m/s²"),
+        (LimitName.FIT_R2, 0.995, 0.9, None, ""),
+        (LimitName.H1_REDUCTION, 22.0, 6.0, None, "dB"),
+    ))
     run.trims_before = Trims(0.0, 0.0, 10000.0, 10000.0)
     run.trims_after = Trims(40.0 + i % 50, -30.0 + i % 40, 10010.0, 9990.0)
     run.trims_estimated = Trims(40.2 + i % 50, -30.1 + i % 40, 10010.3, 9989.8)

@@ -195,8 +195,6 @@ class _Calibration:
         self.sees_angle = session.drive.reports_state
         self.commands: CommandLog | None = None  # a drive that reports nothing on the bus
         self.period_s = session.spec.sync_period_s
-        self.velocity = 0
-        self.electrical_hz = self.recipe.motion.electrical_hz
         self.capture: FrameCapture | None = None
         self.holds: Holds | None = None  # once the unit is identified: its speed is known
         self.record_before: CalibrationRecord | None = None
@@ -328,12 +326,12 @@ class _Calibration:
             )
         self.run_record.trims_before = drive.read_trims()
         self.record_before = drive.read_calibration_record()
-        self.velocity = velocity_for(self.recipe.motion.electrical_hz, microsteps)
-        self.electrical_hz = self.velocity / (4.0 * microsteps)
+        velocity = velocity_for(self.recipe.motion.electrical_hz, microsteps)
         assert self.capture is not None  # listening since before the identity check
         self.holds = Holds(self.recipe, self.run_record, self.session, self.capture,
-                           self.commands, velocity=self.velocity,
-                           electrical_hz=self.electrical_hz, sees_angle=self.sees_angle)
+                           self.commands, velocity=velocity,
+                           electrical_hz=velocity / (4.0 * microsteps),
+                           sees_angle=self.sees_angle)
 
     def _calibrate(self) -> None:
         self._self_check()

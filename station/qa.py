@@ -41,14 +41,18 @@ def capability(values: Sequence[float], low: float | None, high: float | None) -
     that side counts. Non-finite values are refused: a NaN would silently make
     the whole figure NaN, hiding the run that produced it.
     """
-    if low is not None and high is not None and low > high:
-        raise ValueError(f"low limit {low} is above high limit {high}")
+    _check_limits(low, high)
     if not all(math.isfinite(value) for value in values):
         raise ValueError("capability needs finite values; filter out runs without a value first")
     n = len(values)
     mean = statistics.fmean(values) if n else math.nan
     std = statistics.stdev(values) if n >= 2 else math.nan
     return Capability(n, mean, std, low, high, _cpk(mean, std, low, high))
+
+
+def _check_limits(low: float | None, high: float | None) -> None:
+    if low is not None and high is not None and low > high:
+        raise ValueError(f"low limit {low} is above high limit {high}")
 
 
 def _cpk(mean: float, std: float, low: float | None, high: float | None) -> float | None:
@@ -86,8 +90,7 @@ class Moments:
 
     def capability(self, low: float | None, high: float | None) -> Capability:
         """What ``capability`` gives for the values these moments were summed from."""
-        if low is not None and high is not None and low > high:
-            raise ValueError(f"low limit {low} is above high limit {high}")
+        _check_limits(low, high)
         n = self.n
         if not (math.isfinite(self.shifted_sum) and math.isfinite(self.shifted_squares)):
             raise ValueError("capability needs finite values; the sums were not finite")

@@ -221,7 +221,7 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         elif previous is None:
             recipe = load_recipe(DEFAULT_RECIPE)
         else:
-            recipe = _recipe_of(store, previous)
+            recipe = _recipe_of(previous)
         run = _new_run(station, serial, recipe, RunKind.RECALIBRATE)
         if spooled is not None:
             run.warnings.append(spooled)
@@ -233,17 +233,17 @@ def recalibrate(station: Station, serial_label: str, reason: str, *,
         return Calibration(run, previous)
 
 
-def _recipe_of(store: RunStore, previous: Run) -> Recipe:
+def _recipe_of(previous: Run) -> Recipe:
     """The current version of the unit's last recipe; the very text it used if not shipped.
 
     A unit calibrated with a recipe file that is not (or no longer) among the
     shipped ones can still be recalibrated in the field exactly as before: the
-    database keeps every recipe text a run used, by hash.
+    record carries the recipe text its run used.
     """
     name = previous.recipe.name
     if name in available_recipes():
         return load_recipe(name)
-    text = store.recipe_text(previous.recipe.sha256)
+    text = previous.recipe.text
     if text is None:
         raise InputError(f"recipe {name!r} of run {previous.run_id} is neither shipped nor "
                          "kept in the database; name one with --recipe")

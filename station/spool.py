@@ -55,7 +55,7 @@ def forward(spool: Store, line: PostgresStore) -> list[Forwarded]:
     done: list[Forwarded] = []
     for run in spool.unforwarded():
         assert run.run_id is not None  # read back from the spool
-        text = run.recipe.text or spool.recipe_text(run.recipe.sha256)
+        text = run.recipe.text  # read with the run: the record carries its recipe
         if text is None:  # the schema's foreign key keeps every run's recipe
             raise ValueError(f"spool run {run.run_id}: its recipe text is missing")
         known = replace(run, run_uuid=identity(run))

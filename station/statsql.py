@@ -47,6 +47,9 @@ QUANTITIES = (
 _NEWEST_RUNS = 1000
 """How many of a recipe's newest runs are searched for its bounds before its checks are."""
 
+_BOUNDED = "(limit_checks.low IS NOT NULL OR limit_checks.high IS NOT NULL)"
+"""A limit check that carried bounds (one that did not apply carries none)."""
+
 MEASURED = frozenset({Verdict.PASS, Verdict.FAIL})
 """Runs that measured a unit; an error or an abort measured nothing."""
 
@@ -142,12 +145,11 @@ def _bounds(execute: Execute, terms: list[str], params: list[object], *, sha: st
     that checked it with any; none where no run did (capability is then mean and spread
     only). A small selection is read whole, in one statement, by whatever index its
     filter has (a serial's dozen runs); a large one is searched per limit."""
-    bounded = "(limit_checks.low IS NOT NULL OR limit_checks.high IS NOT NULL)"
     names = [quantity.limit for quantity in QUANTITIES]
     if selected > _NEWEST_RUNS:
         return {name: _newest_bounds(execute, terms, params, sha=sha, name=name, mark=mark)
                 for name in names}
-    where = _where([*terms, f"runs.recipe_sha256 = {mark}", bounded,
+    where = _where([*terms, f"runs.recipe_sha256 = {mark}", _BOUNDED,
                     f"limit_checks.name IN ({', '.join([mark] * len(names))})"])
     rows = execute(f"SELECT limit_checks.name AS name, limit_checks.low AS low, "
                    f"limit_checks.high AS high, runs.started_at AS started_at FROM runs "
@@ -167,18 +169,17 @@ def _newest_bounds(execute: Execute, terms: list[str], params: list[object], *, 
     """Nearly always the recipe's newest run has the check, so its newest runs are read
     first; a check that is rare or absent among them is looked for from the checks' side
     instead, so that neither case walks a million runs."""
-    bounded = "(limit_checks.low IS NOT NULL OR limit_checks.high IS NOT NULL)"
     newest = (f"SELECT runs.run_id, runs.started_at FROM runs "
               f"{_where([*terms, f'runs.recipe_sha256 = {mark}'])} "
               f"ORDER BY runs.started_at DESC LIMIT {_NEWEST_RUNS}")
     rows = execute(f"SELECT limit_checks.low AS low, limit_checks.high AS high "
                    f"FROM ({newest}) AS recent JOIN limit_checks "
                    f"ON limit_checks.run_id = recent.run_id AND limit_checks.name = {mark} "
-                   f"WHERE {bounded} ORDER BY recent.started_at DESC LIMIT 1",
+                   f"WHERE {_BOUNDED} ORDER BY recent.started_at DESC LIMIT 1",
                    [*params, sha, name.value])
     if not rows:
         # CROSS JOIN keeps SQLite's loop on the checks (PostgreSQL plans it by its stats).
-        where = _where([f"limit_checks.name = {mark}", bounded,
+        where = _where([f"limit_checks.name = {mark}", _BOUNDED,
                         "runs.run_id = limit_checks.run_id", *terms,
                         f"runs.recipe_sha256 = {mark}"])
         rows = execute(f"SELECT limit_checks.low AS low, limit_checks.high AS high "

@@ -140,6 +140,7 @@ def throwaway_cluster(binaries: Path, *, durable: bool = False) -> Iterator[Clus
 def remove_orphans(tmp: Path | None = None) -> list[Path]:
     """Stop and remove the clusters whose owning process is gone; return their folders."""
     removed = []
+    binaries = server_binaries()
     for folder in Path(tmp or tempfile.gettempdir()).glob(f"{FOLDER_PREFIX}*"):
         try:
             owner = int((folder / OWNER_FILE).read_text())
@@ -148,7 +149,6 @@ def remove_orphans(tmp: Path | None = None) -> list[Path]:
         if _alive(owner):
             continue
         data = folder / "data"
-        binaries = server_binaries()
         if binaries is not None and (data / "postmaster.pid").exists():
             with suppress(RuntimeError, OSError):
                 _run([str(binaries / "pg_ctl"), "-D", str(data), "-m", "immediate", "-w",
