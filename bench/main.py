@@ -18,6 +18,7 @@ from bench import (
     analysis_speed,
     bench_speed,
     calibration,
+    cli_start,
     diagnosis,
     diagnosis_speed,
     history_speed,
@@ -44,6 +45,7 @@ def _as_record(item: BenchRecord | dict[str, object]) -> BenchRecord:
 def _measures(minute: MinuteRecording) -> dict[str, Measure]:
     """Every benchmark by name, in running order."""
     return {
+        "cli_start": cli_start.measure,
         "plant_speed": plant_speed.measure,
         "bench_speed": bench_speed.measure,
         "recording_memory": recording_memory.measure,

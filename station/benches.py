@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-import os
 import tomllib
 import uuid
 from collections.abc import Iterator, Mapping
@@ -54,6 +53,13 @@ from drivers.modbus_map import (
 )
 from drivers.transports import Transport, drive_traits
 from station.analysis.commanded import CommandTiming
+from station.bench_names import (
+    SIM_BENCH,
+    SIM_MODBUS_BENCH,
+    BenchFileError,
+    chosen_bench,
+    read_bench_file,
+)
 from station.core import Axis, Effect, LoadKind
 from station.errors import DeviceError, InputError
 from station.recorder import SimulatedClock
@@ -67,21 +73,12 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-SIM_BENCH = "sim"
-"""The bench name meaning the simulated bench in this process (CLI.md)."""
-SIM_MODBUS_BENCH = "sim-modbus"
-"""The simulated bench with its drive reached over Modbus TCP on loopback (ICD.md §4)."""
-BENCH_ENV = "STATION_BENCH"
 DEFAULT_STATION_ID = 1
 _RECEIVE_OWN = "receive_own_messages"
 SIMULATOR: Final = "station.sim.bench"
 """The simulated bench's module, imported only when a bench is simulated (as python-can
 imports an interface's module only when it is named): the runtime never needs the
 simulator, and the simulator builds on the runtime (import-linter holds both)."""
-
-
-class BenchFileError(InputError):
-    """A bench file that cannot be used; nothing was done (exit code 2)."""
 
 
 @dataclass(frozen=True)
@@ -306,21 +303,10 @@ def parse_bench(text: str, *, source: str) -> BenchSpec:
 
 def load_bench(name_or_path: str | None = None) -> BenchSpec:
     """``sim`` (the default, also from ``STATION_BENCH``) or a bench file's path."""
-    chosen = name_or_path or os.environ.get(BENCH_ENV) or SIM_BENCH
+    chosen = chosen_bench(name_or_path)
     if chosen in BUILT_IN_BENCHES:
         return BUILT_IN_BENCHES[chosen]
-    path = Path(chosen).expanduser()
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise BenchFileError(
-            f"bench {chosen!r} is neither a built-in bench ({', '.join(BUILT_IN_BENCHES)}) "
-            "nor an existing bench file"
-        ) from None
-    except OSError as exc:
-        raise BenchFileError(f"bench file {path}: cannot be read: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise BenchFileError(f"bench file {path}: not UTF-8 text (byte {exc.start})") from None
+    path, text = read_bench_file(chosen)
     return parse_bench(text, source=str(path))
 
 

@@ -42,6 +42,14 @@ class Method(StrEnum):
         return self is Method.COHERENT
 
 
+class MethodChoice(StrEnum):
+    """What ``station analyze`` is asked for; AUTO prefers the phase-coherent estimator."""
+
+    AUTO = "auto"
+    PAPER = "paper"
+    COHERENT = "coherent"
+
+
 def offset_limit_mA(rated_current_mA: int) -> int:
     """The drive accepts offsets within ±rated/2 (ICD.md §2, 0x2100:01/02), in whole mA."""
     return rated_current_mA // 2

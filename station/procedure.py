@@ -21,7 +21,6 @@ it. The drive is disabled on the way out, always.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import time
 from collections.abc import Iterator, Sequence, Set
@@ -68,7 +67,7 @@ from station.limits import (
 from station.methods import Plan, for_run, trims_text
 from station.recipes import Recipe
 from station.recorder import RecordingWriter
-from station.recording import RecordingMetadata
+from station.recording import RecordingMetadata, sha256_of
 from station.runner import Motion
 from station.runs import LimitCheck, LimitName, Ripple, Run, Verdict
 from station.schedules import Phase, velocity_for
@@ -128,14 +127,6 @@ def check_identity(drive: Drive, serial: Serial) -> None:
             f"the unit on the bench reports serial {label_for(reported)} (0x1018:4 = "
             f"{reported}), not {serial}: wrong unit on the fixture?",
         )
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 class _Context:

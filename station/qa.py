@@ -32,6 +32,25 @@ class Capability:
     high: float | None
     cpk: float | None
 
+    @property
+    def cpk_sigma(self) -> float | None:
+        """Standard error of ``cpk`` (Bissell's approximation, normal data):
+        √(1/(9n) + Cpk²/(2(n−1))). Five runs at Cpk 1.33 give ±0.5: the figure alone
+        would read as a capable process where the data cannot tell."""
+        if self.cpk is None or self.n < 2:
+            return None
+        return math.sqrt(1.0 / (9.0 * self.n) + self.cpk ** 2 / (2.0 * (self.n - 1)))
+
+    @property
+    def cpk_rough(self) -> bool:
+        """Too few values for Cpk to be more than a rough guide (``CPK_MIN_VALUES``)."""
+        return self.cpk is not None and self.n < CPK_MIN_VALUES
+
+
+CPK_MIN_VALUES = 30
+"""Below this many values a Cpk is shown with a caution: its standard error is then
+above 0.15 even for an incapable process, and above 0.2 at the usual target of 1.33."""
+
 
 def capability(values: Sequence[float], low: float | None, high: float | None) -> Capability:
     """Cpk of ``values`` against ``low``..``high`` (either may be absent).

@@ -6,6 +6,7 @@ nothing here needs a CAN library (``station.recorder`` writes the logs).
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -50,6 +51,16 @@ def log_format_for(path: Path) -> LogFormat:
 def metadata_path_for(log_path: Path) -> Path:
     """ICD.md §5: the metadata file has the log's stem and the suffix ``.json``."""
     return log_path.with_suffix(".json")
+
+
+def require_recording(log_path: Path) -> LogFormat:
+    """The recording's format, refused when it names none or neither of its halves is
+    there (that its metadata is missing would only confuse). Light on purpose: the
+    command line asks it before the log readers are imported."""
+    log_format = log_format_for(log_path)
+    if not log_path.exists() and not metadata_path_for(log_path).exists():
+        raise RecordingError(f"{log_path}: no such recording")
+    return log_format
 
 
 _REQUIRED_KEYS: Final[dict[str, type | tuple[type, ...]]] = {
@@ -197,3 +208,13 @@ def write_text_atomically(path: Path, text: str) -> None:
 
 def write_json_atomically(path: Path, doc: Mapping[str, Any]) -> None:
     write_text_atomically(path, json.dumps(doc, indent=2, sort_keys=False) + "\n")
+
+
+def sha256_of(path: Path) -> str:
+    """The recording's fingerprint, kept with its run: a page drawn from it later can
+    tell the file it reads from the one the unit was judged by."""
+    digest = hashlib.sha256()
+    with path.open("rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()

@@ -13,12 +13,15 @@ import math
 from collections.abc import Sequence
 from dataclasses import asdict
 from datetime import UTC, datetime
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from station.advice import next_step
 from station.core import Trims
 from station.qa import RecipeStatistics
 from station.runs import Run, RunKind, utc_iso
-from station.service import Calibration, Verification
+
+if TYPE_CHECKING:
+    from station.service import Calibration, Verification
 
 
 def _trims(t: Trims | None) -> dict[str, float] | None:
@@ -59,6 +62,7 @@ def run_dict(run: Run) -> dict[str, Any]:
         "motion_s": run.motion_s,
         "service_reason": run.service_reason,
         "previous_run_id": run.previous_run_id,
+        "next_step": next_step(run),
     }
 
 
@@ -130,13 +134,14 @@ def verify_dict(result: Verification) -> dict[str, Any]:
 
 
 STATS_CSV_COLUMNS = ("recipe", "recipe_version", "recipe_sha256", "runs", "quantity", "n",
-                     "mean", "std", "low", "high", "cpk")
+                     "mean", "std", "low", "high", "cpk", "cpk_sigma")
 
 
 def stats_csv_rows(docs: Sequence[dict[str, Any]]) -> list[list[Any]]:
     """``stats --format csv``: one row per recipe version and quantity (empty: none)."""
     return [[d["recipe"], d["recipe_version"], d["recipe_sha256"], d["runs"], name,
-             *("" if c[k] is None else c[k] for k in ("n", "mean", "std", "low", "high", "cpk"))]
+             *("" if c[k] is None else c[k]
+               for k in ("n", "mean", "std", "low", "high", "cpk", "cpk_sigma"))]
             for d in docs for name, c in d["quantities"].items()]
 
 
@@ -150,7 +155,8 @@ def stats_dict(s: RecipeStatistics) -> dict[str, Any]:
         "verdicts": {v.value: n for v, n in s.verdicts.items()},
         "quantities": {
             name: {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
-                   for k, v in asdict(c).items()}
+                   for k, v in {**asdict(c), "cpk_sigma": c.cpk_sigma,
+                                "cpk_rough": c.cpk_rough}.items()}
             for name, c in s.quantities.items()
         },
     }

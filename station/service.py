@@ -10,9 +10,7 @@ reason, Ctrl-C as ABORTED; the recording of the bus goes beside the database.
 
 from __future__ import annotations
 
-import getpass
 import logging
-import os
 import tempfile
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -34,14 +32,13 @@ from station.errors import (
     StationError,
 )
 from station.limits import drift, drift_warnings
-from station.paths import default_database, station_home
+from station.paths import station_home
 from station.procedure import (
     CalibrationRequest,
     calibrate_unit,
     check_identity,
     unit_on_bench,
 )
-from station.qa import RecipeStatistics
 from station.recipes import (
     DEFAULT_RECIPE,
     Recipe,
@@ -51,7 +48,7 @@ from station.recipes import (
     parse_recipe,
 )
 from station.recording import metadata_path_for
-from station.rows import RunFilter, VerificationRecord
+from station.rows import VerificationRecord
 from station.runs import RecipeRef, Run, RunKind, Verdict
 from station.serials import Serial, parse_serial
 from station.steps import Observer
@@ -62,30 +59,17 @@ from station.storage import (
     backend_of,
     describe,
     open_store,
-    target_of,
 )
 from station.store import Store
 
 if TYPE_CHECKING:
     from station.pgstore import PostgresStore
-    from station.spool import Forwarded
 
 log = logging.getLogger(__name__)
 
-DB_ENV = "STATION_DB"
-OPERATOR_ENV = "STATION_OPERATOR"
 RECORDINGS_DIR = "recordings"
 RECORDING_SUFFIX = ".blf"
 """Vector BLF: compressed, and read by every CAN tool a motion engineer owns."""
-
-
-def database_path(explicit: str | Path | None = None) -> DbTarget:
-    """``--db``, else ``STATION_DB``, else ``$STATION_HOME/station.db``: a SQLite file,
-    or a line's PostgreSQL (a ``postgresql://`` URL)."""
-    if explicit is not None:
-        return target_of(str(explicit))
-    from_env = os.environ.get(DB_ENV)
-    return target_of(from_env) if from_env else default_database()
 
 
 def recordings_dir(db_path: DbTarget) -> Path:
@@ -95,10 +79,6 @@ def recordings_dir(db_path: DbTarget) -> Path:
     if backend_of(db_path) is Backend.POSTGRESQL:
         return station_home() / RECORDINGS_DIR
     return Path(db_path).parent / RECORDINGS_DIR
-
-
-def default_operator() -> str:
-    return os.environ.get(OPERATOR_ENV) or getpass.getuser()
 
 
 @dataclass(frozen=True)
@@ -424,72 +404,3 @@ def verify(station: Station, serial_label: str) -> Verification:
         store.add_verification(record)
     return Verification(record, calibration_record,
                         recorded.verdict if recorded is not None else None)
-
-
-# --- QA ---------------------------------------------------------------------------------------
-
-
-def history(db_path: DbTarget, serial_label: str, *, station_id: int | None = None
-            ) -> list[Run]:
-    """Every run of one unit, oldest first; only those of one station with ``station_id``."""
-    serial = parse_serial(serial_label)
-    with open_store(db_path) as store:
-        if station_id is None:
-            return store.history(serial.label)
-        return store.query(RunFilter(serial=serial.label, station_id=station_id))
-
-
-def query(db_path: DbTarget, run_filter: RunFilter) -> list[Run]:
-    with open_store(db_path) as store:
-        return store.query(run_filter)
-
-
-def statistics(db_path: DbTarget, run_filter: RunFilter) -> list[RecipeStatistics]:
-    """Mean, standard deviation and Cpk of trims and residual ripple, per recipe version.
-
-    Capability is judged against the limits the runs themselves were judged by: each
-    record keeps its limit checks with their bounds. No recipe text is parsed again, so
-    runs recorded under an older recipe format (or a key since renamed) still count.
-    Only runs that measured a unit (pass or fail) count; errors and aborts measured
-    nothing. The database does the sums (``station.statsql``): a line's million runs are
-    never fetched.
-    """
-    with open_store(db_path) as store:
-        return store.statistics(run_filter)
-
-
-# --- a spool's forwarding ---------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class SyncReport:
-    """What ``station sync`` forwarded to the line's database, and what still waits."""
-
-    line: str
-    forwarded: list[Forwarded]
-    waiting: list[Run]
-
-
-def sync(db: DbTarget, *, list_only: bool = False, source: Path | None = None) -> SyncReport:
-    """Forward this station's spool to its line's database (``station sync``), or only
-    list what waits (``--list``, which needs no connection). ``source`` forwards another
-    SQLite database instead: a station's own history from before it joined the line."""
-    if backend_of(db) is not Backend.POSTGRESQL:
-        raise InputError("station sync forwards this station's spool to its line's database: "
-                         "--db (or STATION_DB) must name it as a postgresql:// URL")
-    from station import spool  # noqa: PLC0415 - psycopg only for a line's database
-
-    if source is not None:
-        if not source.is_file():
-            raise InputError(f"--from {source}: no such database file")
-        if backend_of(target_of(str(source))) is not Backend.SQLITE:
-            raise InputError(f"--from {source}: a station's SQLite file is imported")
-    path = source or spool.spool_path()
-    if not path.exists():
-        return SyncReport(describe(db), [], [])
-    if list_only:
-        return SyncReport(describe(db), [], spool.pending(path))
-    with open_store(db) as line, Store(path) as spooled:
-        done = spool.forward(spooled, cast("PostgresStore", line))
-        waiting = spooled.unforwarded()
-    return SyncReport(describe(db), done, waiting)

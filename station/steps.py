@@ -27,6 +27,22 @@ class Step(StrEnum):
     DONE = "done"
 
 
+    @property
+    def number(self) -> int | None:
+        """Which of the README's nine steps this is part of (None: outside them)."""
+        return _NUMBER.get(self)
+
+
+STEPS = 9
+"""The calibration's steps as the README numbers them: the operator's "step n of 9"."""
+
+_NUMBER = {
+    Step.CONNECT: 1, Step.IDENTIFY: 1, Step.SELF_CHECK: 2, Step.BASELINE: 3, Step.SWEEP: 4,
+    Step.ESTIMATE: 5, Step.WRITE: 6, Step.STORE: 6, Step.RESET: 6, Step.READ_BACK: 6,
+    Step.VERIFY: 7, Step.RECORD: 9,
+}
+
+
 class Observer(Protocol):
     """Whoever shows the operator progress (the CLI's rich display, or nobody)."""
 

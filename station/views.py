@@ -18,6 +18,8 @@ from rich.panel import Panel
 from rich.table import Table
 from rich.text import Text
 
+from station.qa import CPK_MIN_VALUES
+
 _VERDICT_STYLE = {"pass": "bold white on green", "fail": "bold white on red",
                   "error": "bold white on dark_orange3", "aborted": "bold white on grey30"}
 
@@ -55,13 +57,23 @@ def _limit_text(check: dict[str, Any]) -> str:
     return f"{shown}{unit}, limit {bound or 'none'}{note}"
 
 
-def banner(verdict: str | None, serial: str, reason: str | None) -> Panel:
-    """The one thing an operator must not misread: big, coloured, with the reason."""
+def path_line(label: str, path: str | None) -> Text:
+    """A path on a line of its own, whole: never cut with "…" nor broken by a newline,
+    so an operator can copy it (the terminal wraps it; printed with ``crop=False``)."""
+    return Text.assemble((f"{label}: ", "bold"), path or "—", no_wrap=True, overflow="ignore")
+
+
+def banner(verdict: str | None, serial: str, reason: str | None,
+           next_step: str | None = None) -> Panel:
+    """The one thing an operator must not misread: big, coloured, with the whole reason
+    (wrapped, never cut) and what to do next."""
     word = (verdict or "unknown").upper()
     text = Text(f"  {serial}: {word}  ", style=_VERDICT_STYLE.get(verdict or "", "bold"))
     body: list[RenderableType] = [Align.center(text)]
     if reason and verdict != "pass":
-        body.append(Text(reason, justify="center"))
+        body.append(Text(reason, justify="center", overflow="fold"))
+    if next_step:
+        body.append(Text.assemble(("next: ", "bold"), next_step, overflow="fold"))
     return Panel(Group(*body), expand=True)
 
 
@@ -70,7 +82,7 @@ def run_view(doc: dict[str, Any]) -> Group:
     table = Table(title=f"run {doc['run_id']}: {doc['serial']} ({doc['kind']}, recipe "
                         f"{doc['recipe']} {doc['recipe_version']})", show_header=False)
     table.add_column("what", style="bold")
-    table.add_column("value")
+    table.add_column("value", overflow="fold")
     table.add_row("trims before", trims_text(doc["trims_before"]))
     if "previous_trims" in doc:
         table.add_row("previous calibration", trims_text(doc["previous_trims"]))
@@ -89,10 +101,11 @@ def run_view(doc: dict[str, Any]) -> Group:
         table.add_row(check["name"], f"{mark} {_limit_text(check)}")
     if doc["motion_s"] is not None:
         table.add_row("motion time", f"{doc['motion_s']:.1f} s")
-    table.add_row("recording", doc["recording"] or "—")
-    parts: list[RenderableType] = [table]
-    parts.extend(Text(f"warning: {w}", style="yellow") for w in doc["warnings"])
-    parts.append(banner(doc["verdict"], doc["serial"], doc["reason"]))
+    parts: list[RenderableType] = [table, path_line("recording", doc["recording"])]
+    if doc.get("report"):
+        parts.append(path_line("report", doc["report"]))
+    parts.extend(Text(f"warning: {w}", style="yellow", overflow="fold") for w in doc["warnings"])
+    parts.append(banner(doc["verdict"], doc["serial"], doc["reason"], doc.get("next_step")))
     return Group(*parts)
 
 
@@ -105,28 +118,31 @@ def _compact_trims(trims: dict[str, float] | None) -> str:
 
 
 def runs_table(docs: Sequence[dict[str, Any]], title: str, *, one_unit: bool = False) -> Table:
-    """History and query results, one line per run, as QA scans them (80 columns)."""
-    table = Table(title=title, box=box.SIMPLE_HEAD, padding=(0, 1), pad_edge=False,
-                  caption="trims: offsets A/B (mA) over gains A/B; H1 over H2 after (m/s²)")
-    columns = ["run", "started UTC", "serial", "verdict", "recipe", "stn", "trims", "H after",
-               "failed"]
-    if one_unit:
-        columns.remove("serial")
+    """History and query results, one line per run, as QA scans them (80 columns): what
+    kind of run it was and why it ended as it did, in the run's own words."""
+    table = Table(title=title, box=box.SIMPLE_HEAD, padding=(0, 1, 0, 0), pad_edge=False,
+                  caption="verdict over cal (production) or recal (field service); trims: "
+                  "offsets A/B (mA) over gains A/B; H1 over H2 after (m/s²)")
+    columns = ["run", "started UTC", "verdict", "recipe", "stn", "trims", "H after", "reason"]
     for column in columns:
-        # Limit names have no spaces to wrap at: fold them rather than cut them.
-        table.add_column(column, no_wrap=column != "failed", overflow="fold")
+        # Reasons and limit names are folded, never cut: the reason is what QA reads.
+        table.add_column(column, no_wrap=column != "reason", overflow="fold",
+                         ratio=1 if column == "reason" else None,
+                         min_width=12 if column == "reason" else None)
     for d in docs:
         after = d["after"]
         cells = {
-            "run": str(d["run_id"]),
+            # Across units, each run's serial under its number.
+            "run": str(d["run_id"]) if one_unit else f"{d['run_id']}\n{d['serial']}",
             "started UTC": d["started_at"][:16].replace("T", "\n"),
-            "serial": d["serial"],
-            "verdict": d["verdict"] or "running",
+            # Over the verdict, the run's kind: production or field service.
+            "verdict": f"{d['verdict'] or 'running'}\n"
+                       f"{'recal' if d['kind'] == 'recalibrate' else 'cal'}",
             "recipe": f"{d['recipe']}\n{d['recipe_version']}",
             "stn": str(d["station"]),
             "trims": _compact_trims(d["trims"]),
             "H after": "—" if after is None else f"{after['h1']:.4f}\n{after['h2']:.4f}",
-            "failed": ", ".join(c["name"] for c in d["failed_limits"]) or "—",
+            "reason": d["reason"] or "—",
         }
         table.add_row(*(cells[c] for c in columns))
     return table
@@ -167,45 +183,63 @@ def stats_view(docs: Sequence[dict[str, Any]]) -> Group:
         table = Table(title=f"recipe {d['recipe']} {d['recipe_version']} "
                             f"({d['recipe_sha256'][:12]}): {d['runs']} runs: {counts}")
         for column in ("quantity", "n", "mean", "std", "low", "high", "Cpk"):
-            table.add_column(column, justify="left" if column == "quantity" else "right")
+            table.add_column(column, justify="left" if column == "quantity" else "right",
+                             no_wrap=column != "quantity")
+        rough = False
         for name, c in d["quantities"].items():
+            cpk = _number(c["cpk"])
+            if c.get("cpk_sigma") is not None:
+                cpk += f" ± {c['cpk_sigma']:.2f}"
+            if c.get("cpk_rough"):
+                cpk, rough = cpk + " *", True
             table.add_row(name, str(c["n"]), _number(c["mean"], 4), _number(c["std"], 4),
-                          _number(c["low"], 1), _number(c["high"], 3), _number(c["cpk"]))
+                          _number(c["low"], 1), _number(c["high"], 3), cpk)
+        if rough:
+            table.caption = (f"* Cpk from fewer than {CPK_MIN_VALUES} runs: a rough guide, "
+                             "not evidence of capability (± its standard error)")
         tables.append(table)
     if not tables:
         tables.append(Text("no runs match"))
     return Group(*tables)
 
 
+def _flat(value: Any, prefix: str = "") -> list[str]:
+    """Nested parameter documents as ``path=value`` lines, never a Python repr."""
+    if isinstance(value, dict):
+        return [line for k, v in value.items()
+                for line in _flat(v, f"{prefix}.{k}" if prefix else str(k))]
+    if isinstance(value, list | tuple):
+        return [line for i, v in enumerate(value) for line in _flat(v, f"{prefix}[{i}]")]
+    if isinstance(value, float):
+        return [f"{prefix}={value:.4g}"]
+    return [f"{prefix}={value}"]
+
+
 def _parameter_text(parameters: dict[str, Any]) -> str:
-    """Effect parameters on a few lines: nested per-order entries flattened."""
-    parts: list[str] = []
-    for key, value in parameters.items():
-        if isinstance(value, dict):
-            inner = ", ".join(
-                f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in value.items()
-            )
-            parts.append(f"{key}: {inner}")
-        elif isinstance(value, float):
-            parts.append(f"{key}={value:.4g}")
-        else:
-            parts.append(f"{key}={value}")
-    return "\n".join(parts)
+    """Effect parameters one per line, nested entries by their path."""
+    return "\n".join(_flat(parameters))
 
 
 def diagnosis_view(doc: dict[str, Any]) -> Group:
     """What a motion engineer reads first: the verdict, the effects, the fit, where it fails."""
     fit = doc["fit"]
+    if doc["mismatch"]:
+        said = "mismatch with the nominal model"
+    elif doc["located"]:
+        said = (f"no mismatch that matters: {len(doc['located'])} disagreement(s) located, "
+                "none explained better than noise on held-out conditions")
+    else:
+        said = "no mismatch with the nominal model"
     head = Text(
-        f"{doc['serial']}: {'mismatch' if doc['mismatch'] else 'no mismatch'} with the nominal "
-        f"model; held-out residual {fit['before']:.4f} → {fit['after']:.4f} m/s² RMS "
+        f"{doc['serial']}: {said}; held-out residual {fit['before']:.4f} → "
+        f"{fit['after']:.4f} m/s² RMS "
         f"(χ² {fit['before_chi2']:.0f} → {fit['after_chi2']:.0f}, "
         f"{len(doc['conditions'])} conditions, {doc['segments']} segments)",
         style="bold",
     )
     effects = Table(title="effects named (strongest first)", box=box.SIMPLE)
     for column in ("effect", "held-out χ² gain", "parameters"):
-        effects.add_column(column)
+        effects.add_column(column, overflow="fold")
     for e in doc["effects"]:
         name = e["id"]
         if e.get("cannot_separate_from"):
@@ -213,7 +247,7 @@ def diagnosis_view(doc: dict[str, Any]) -> Group:
         effects.add_row(name, f"{e['held_out_chi2_gain']:.0f}", _parameter_text(e["parameters"]))
     located = Table(title="where the nominal model fails (strongest 10)", box=box.SIMPLE)
     for column in ("where", "χ²/dof", "confidence"):
-        located.add_column(column)
+        located.add_column(column, overflow="fold")
     # What no id explains comes first: it is what the engineer must look at.
     for loc in sorted(doc["located"], key=lambda item: item["kind"] == "harmonic")[:10]:
         if "order" in loc:
@@ -228,13 +262,13 @@ def diagnosis_view(doc: dict[str, Any]) -> Group:
         located.add_row(where, f"{loc['chi2'] / max(loc['dof'], 1):.1f}",
                         f"{loc['confidence']:.4f}")
     notes: list[RenderableType] = [Text(f["finding"], style="red") for f in doc["findings"]]
-    notes += [Text(f"warning: {w}", style="yellow") for w in doc["warnings"]]
+    notes += [Text(f"warning: {w}", style="yellow", overflow="fold") for w in doc["warnings"]]
     for e in doc["effects"]:
         if e.get("separating_experiment"):
             notes.append(Text(f"to separate {e['id']}: {e['separating_experiment']}"))
     if doc.get("report"):
-        notes.append(Text(f"report: {doc['report']}"))
-    notes.append(Text(f"recording: {doc['recording']}"))
+        notes.append(path_line("report", doc["report"]))
+    notes.append(path_line("recording", doc["recording"]))
     body: list[RenderableType] = [head]
     if doc["effects"]:
         body.append(effects)

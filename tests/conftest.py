@@ -18,13 +18,14 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import can.interfaces.virtual as virtual_bus
 import psycopg
 import pytest
 
 from station.testing.postgres import Cluster, server_binaries, throwaway_cluster
+from tests.browser import chromium_binary
 
 _GRACE_S = 2.0
 
@@ -103,11 +104,26 @@ def postgresql_binaries() -> Path:
     """
     binaries = server_binaries()
     if binaries is None:
-        message = "PostgreSQL's server binaries are not installed (Debian: postgresql)"
-        if os.environ.get("CI"):
-            pytest.fail(message)
-        pytest.skip(message)
+        _missing("PostgreSQL's server binaries are not installed (Debian: postgresql)")
     return binaries
+
+
+@pytest.fixture(scope="session")
+def chromium() -> str:
+    """Debian's chromium, to look at pages as a person does; skipped without it, except
+    under CI, whose set-up installs it."""
+    binary = chromium_binary()
+    if binary is None:
+        _missing("chromium is not installed (Debian: chromium)")
+    return binary
+
+
+def _missing(tool: str) -> NoReturn:
+    """A tool the tests need: skipped on a developer's machine without it, a failure under
+    CI (``CI`` set), whose set-up installs it."""
+    if os.environ.get("CI"):
+        pytest.fail(tool)
+    pytest.skip(tool)
 
 
 @pytest.fixture(scope="session")

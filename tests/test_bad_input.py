@@ -35,27 +35,15 @@ from station.sim import bench as simulator
 from station.sim.bench import SimBench
 from station.sim.record import SimRecordRequest, record_schedule
 from station.store import Store
+from tests.cli import Outcome, run_cli
 
 DEFAULT_RECIPE = Path(__file__).parents[1] / "recipes" / "default.toml"
-
-
-@dataclass
-class Outcome:
-    code: int
-    stdout: str
-    stderr: str  # whitespace collapsed: the console wraps long messages
 
 
 def _run(args: list[str], monkeypatch: pytest.MonkeyPatch,
          capsys: pytest.CaptureFixture[str]) -> Outcome:
     """The CLI in-process, as ``tests/test_calibrate.py`` runs it."""
-    monkeypatch.setattr(sys, "argv", ["station", *args])
-    with pytest.raises(SystemExit) as stop:
-        main()
-    captured = capsys.readouterr()
-    code = stop.value.code
-    return Outcome(code if isinstance(code, int) else 0 if code is None else 1,
-                   captured.out, " ".join(captured.err.split()))
+    return run_cli(args, monkeypatch, capsys)
 
 
 class BenchConstructed(AssertionError):
@@ -503,10 +491,15 @@ BAD_RECORDINGS: dict[str, tuple[Any, str]] = {
     "truncated": (lambda f, r: _spoiled(f, r, data=_half(r)), "truncated"),
     "garbage-blf": (lambda f, r: _spoiled(f, r, data=bytes(range(256)) * 20),
                     "cannot be read as BLF"),
+    # A BLF signature and a header cut short: what the reader unpacks is not there.
+    "short-blf-header": (lambda f, r: _spoiled(f, r, data=b"LOGG\x90\x00\x00\x00garbage"),
+                         "cannot be read as BLF (truncated or not that format): its header "
+                         "is cut short"),
     "garbage-mf4": (lambda f, r: _spoiled(f, r, ".mf4", data=b"\x00\xff" * 2000),
                     "cannot be read as MF4"),
     "garbage-asc": (lambda f, r: _spoiled(f, r, ".asc", data=b"\x00garbage\n" * 50),
-                    "truncated"),
+                    "truncated: an ASC log is text ending with 'End TriggerBlock'; this one is "
+                    "not text"),
     "garbage-csv": (lambda f, r: _spoiled(f, r, ".csv", data=b"a,b,c\n1,2\n"),
                     "cannot be parsed"),
     "garbage-log": (lambda f, r: _spoiled(f, r, ".log", data=b"(1.0) can0 zzz#\n"),
@@ -520,7 +513,7 @@ BAD_RECORDINGS: dict[str, tuple[Any, str]] = {
     "metadata-not-an-object": (lambda f, r: _spoiled(f, r, metadata=b"[1, 2]"),
                                "metadata must be a JSON object"),
     "metadata-empty-object": (lambda f, r: _spoiled(f, r, metadata=b"{}"), "missing key"),
-    "missing-file": (lambda f, r: f / "nowhere.blf", "nowhere.blf"),
+    "missing-file": (lambda f, r: f / "nowhere.blf", "nowhere.blf: no such recording"),
     "a-directory": (lambda f, r: Path(_folder(f / "folder.blf")), "folder.blf"),
 }
 
@@ -540,7 +533,8 @@ def test_a_malformed_recording_is_refused_with_a_message(
     outcome = _run(args, monkeypatch, capsys)
     assert outcome.code == 2, outcome.stderr
     assert outcome.stdout == ""
-    assert message in outcome.stderr
+    assert message in " ".join(outcome.stderr.split())
+    assert "unpack" not in outcome.stderr and "Traceback" not in outcome.stderr
     assert sorted(folder.rglob("*")) == before  # no report, no partial output
 
 

@@ -11,12 +11,9 @@ import pytest
 from drivers.canbus import BusConfig, BusMonitor, bench_tpdo_cob_ids
 from drivers.modbus_map import ModbusLink
 from drivers.transports import Transport
+from station.bench_names import BENCH_ENV, SIM_BENCH, SIM_MODBUS_BENCH, BenchFileError
 from station.benches import (
-    BENCH_ENV,
-    SIM_BENCH,
-    SIM_MODBUS_BENCH,
     SIM_SPEC,
-    BenchFileError,
     BenchSpec,
     Fixture,
     load_bench,

@@ -22,9 +22,9 @@ from station.core import Trims
 from station.errors import DatabaseError, DatabaseUnreachable
 from station.migrations import MIGRATIONS_PACKAGE, load_migrations
 from station.pgstore import MIGRATIONS_FOLDER, PostgresStore
+from station.records import history
 from station.rows import RunFilter, VerificationRecord
 from station.runs import Run, RunKind, Verdict
-from station.service import history
 from station.spool import forward, note_reached, pending
 from station.storage import Backend, backend_of, describe, open_store, target_of
 from station.store import Store
@@ -351,7 +351,8 @@ def test_sync_shows_forwarded_runs_under_the_line_s_numbers(
         main()
     assert stop.value.code in (0, None)
     table = capsys.readouterr().out
-    assert re.search(r"^\s*2\s+\d{4}-\d\d-\d\d\s+SN123\s+pass", table, re.MULTILINE), table
+    # The line's run 2, its serial under its number.
+    assert re.search(r"^\s*2\s+\d{4}-\d\d-\d\d\s+pass.*\n\s*SN123\s", table, re.MULTILINE), table
 
 
 def test_a_line_lost_while_the_run_went_on_has_its_run_finished_by_sync(

@@ -25,9 +25,9 @@ from station.cli import main
 from station.core import Trims
 from station.limits import bound_checks, ripple_checks, summary, verdict_for
 from station.recipes import Recipe, RecipeError, load_recipe, parse_recipe
+from station.records import statistics as recipe_statistics
 from station.rows import RunFilter
 from station.runs import LimitCheck, RecipeRef, Ripple, Run, RunKind, Verdict
-from station.service import statistics as recipe_statistics
 from station.store import Store
 
 OFFSETS_A = (60.0, 64.0, 68.0, 72.0)
@@ -129,8 +129,14 @@ def test_stats_command_prints_json_per_recipe_version(
     assert doc["verdicts"] == {"pass": 3, "fail": 1, "error": 1, "aborted": 0}
     offset: dict[str, Any] = doc["quantities"]["offset_a_mA"]
     assert offset["n"] == 4 and math.isclose(offset["mean"], statistics.mean(OFFSETS_A))
+    # Four values give a Cpk, with its standard error and a caution beside it.
+    assert offset["cpk"] is not None and offset["cpk_rough"] is True
+    assert math.isclose(offset["cpk_sigma"],
+                        math.sqrt(1 / 36 + offset["cpk"] ** 2 / 6), rel_tol=1e-12)
     code, out = _cli(["stats", "--db", str(db)], monkeypatch, capsys)
     assert "Cpk" in out and "offset_a_mA" in out
+    assert f"{offset['cpk']:.2f} ± {offset['cpk_sigma']:.2f} *" in out
+    assert "* Cpk from fewer than 30 runs: a rough guide" in " ".join(out.split())
 
 
 def test_history_table_shows_each_run_for_people(

@@ -11,7 +11,6 @@ import cmath
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from enum import StrEnum
 
 import numpy as np
 from numpy.typing import NDArray
@@ -50,16 +49,8 @@ from station.analysis.segments import (
     steady_segments,
 )
 from station.analysis.timeline import Timeline
-from station.core import SATURATED_COUNTS, Mapper, Method
+from station.core import SATURATED_COUNTS, Mapper, Method, MethodChoice
 from station.errors import InputError
-
-
-class MethodChoice(StrEnum):
-    """What the caller asks for; AUTO prefers the phase-coherent estimator."""
-
-    AUTO = "auto"
-    PAPER = "paper"
-    COHERENT = "coherent"
 
 
 @dataclass(frozen=True)
@@ -264,6 +255,13 @@ def measure(
         searched = timing is not None and not cut and wrap_sign(rate + error) != 0.0
         if phase is not None:
             delays = _on_clock(phase, seg, options.first_sample, own, searched)
+        valid = window[np.isfinite(window)]
+        if valid.size and np.ptp(valid) == 0.0:
+            # No live sensor reads one value for a whole hold: a stuck or unplugged one
+            # does, and its "harmonics" of zero variance would outweigh every other hold.
+            rejected.append(Rejected(seg.start, seg.stop, "the sensor read one constant value "
+                                     "throughout the hold (stuck or unplugged)"))
+            continue
         try:
             h = seg.harmonics(window, options.orders, white_noise=options.white_noise,
                               delays=delays, taper=options.taper)
@@ -416,18 +414,22 @@ def estimate_condition(condition: Condition, choice: MethodChoice, *,
     return ConditionResult(condition, chosen, estimates, unsupported)
 
 
-def analyze(timeline: Timeline, options: AnalysisOptions | None = None) -> Analysis:
-    """Trims from a timeline; raises EstimateUnsupported with every reason when none.
+def analyze(timeline: Timeline, options: AnalysisOptions | None = None, *,
+            estimate_required: bool = True) -> Analysis:
+    """Trims from a timeline; raises EstimateUnsupported with every reason when none,
+    unless ``estimate_required`` is False: a report draws the holds of a recording no
+    estimator here supports (a magnitude sweep, a run stopped after its baseline), its
+    primary condition then the one with the most trim points and no estimate.
 
     BLAS runs single-threaded here: the fits are small (thousands of rows, a
     few dozen columns), and on a loaded 2-core machine OpenBLAS's threads made
     them 5-30 times slower.
     """
     with threadpool_limits(limits=1, user_api="blas"):
-        return _analyze(timeline, options or AnalysisOptions())
+        return _analyze(timeline, options or AnalysisOptions(), estimate_required)
 
 
-def _analyze(timeline: Timeline, opts: AnalysisOptions) -> Analysis:
+def _analyze(timeline: Timeline, opts: AnalysisOptions, estimate_required: bool) -> Analysis:
     measured, rejected = measure(timeline, opts)
     if not measured:
         reasons = sorted({r.reason for r in rejected}) or ["the drive never ran at constant speed"]
@@ -437,6 +439,8 @@ def _analyze(timeline: Timeline, opts: AnalysisOptions) -> Analysis:
         for c in group_conditions(measured, timeline.sync_period_s)
     ]
     primary = next((r for r in results if r.estimate is not None), None)
+    if primary is None and not estimate_required:
+        primary = results[0]
     if primary is None:
         top = results[0]
         why = "; ".join(f"{m.value}: {reason}" for m, reason in top.unsupported.items())
@@ -445,7 +449,7 @@ def _analyze(timeline: Timeline, opts: AnalysisOptions) -> Analysis:
             f"{top.condition.electrical_hz:.2f} Hz ({why})"
         )
     warnings: list[str] = []
-    if primary is not results[0]:
+    if primary.estimate is not None and primary is not results[0]:
         warnings.append(
             "the condition with the most trim points supports no estimate; "
             "trims come from the next one"

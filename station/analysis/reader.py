@@ -12,6 +12,7 @@ stop silently at a cut, so each format's own end marker is checked too.
 from __future__ import annotations
 
 import gc
+import struct
 import sys
 from array import array
 from collections.abc import Callable, Iterable, Iterator
@@ -43,9 +44,8 @@ from station.recording import (
     FRAMES_RECORDED_KEY,
     LogFormat,
     RecordingMetadata,
-    log_format_for,
-    metadata_path_for,
     read_metadata,
+    require_recording,
 )
 
 ASC_END_MARKER: Final = "end triggerblock"
@@ -77,10 +77,7 @@ class LogFrames:
 
 def read_recording(log_path: Path) -> Timeline:
     """The sample timeline of a recording (log plus metadata beside it)."""
-    log_format = log_format_for(log_path)
-    if not log_path.exists() and not metadata_path_for(log_path).exists():
-        # Neither half is there: that its metadata is missing would only confuse.
-        raise RecordingError(f"{log_path}: no such recording")
+    log_format = require_recording(log_path)
     metadata = read_metadata(log_path)
     frames = read_log_frames(log_path, log_format, metadata)
     timeline = build_timeline(
@@ -176,6 +173,12 @@ def _open_reader(log_path: Path, log_format: LogFormat) -> can.io.generic.Messag
 
 
 def _describe(exc: BaseException) -> str:
+    if isinstance(exc, struct.error):
+        # A reader unpacking a header longer than the file: python's words for it
+        # ("unpack requires a buffer of 72 bytes") say nothing to whoever holds the file.
+        return "its header is cut short"
+    if isinstance(exc, ValueError) and "values to unpack" in str(exc):
+        return "a line does not have the format's fields"
     text = str(exc).strip()
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
@@ -221,6 +224,8 @@ def _asc_incomplete(log_path: Path, _reader: can.io.generic.MessageReader) -> st
     lines = _tail(log_path).rstrip().splitlines()
     last = lines[-1].decode("ascii", "replace").strip() if lines else ""
     if " ".join(last.lower().split()) != ASC_END_MARKER:
+        if not last.isprintable():
+            return "an ASC log is text ending with 'End TriggerBlock'; this one is not text"
         return f"an ASC log ends with 'End TriggerBlock', this one with {last[:60]!r}"
     return None
 

@@ -15,15 +15,12 @@ picks a GUI backend, neither of which a station process wants.
 
 from __future__ import annotations
 
-import html
-import io
 import math
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from matplotlib import rc_context
 from matplotlib.axes import Axes
 from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
@@ -42,6 +39,13 @@ from station.diagnosis.diagnose import (
 )
 from station.diagnosis.fit import Fit
 from station.diagnosis.observations import ConditionKey
+from station.htmlpage import cells as _cells
+from station.htmlpage import escape as _e
+from station.htmlpage import figure as _figure
+from station.htmlpage import num as _num
+from station.htmlpage import page
+from station.htmlpage import svg as _svg
+from station.htmlpage import table as _table
 from station.recording import write_text_atomically
 
 MAX_HARMONIC_ROWS = 40
@@ -51,52 +55,7 @@ _MEASURED = "#1f4e79"
 _NOMINAL = "#c0392b"
 _EXTENDED = "#27ae60"
 
-_STYLE = """
-body { font-family: system-ui, sans-serif; max-width: 1100px; margin: 2em auto;
-       padding: 0 1em; color: #222; line-height: 1.45; }
-h1 { font-size: 1.5em; margin-bottom: 0.2em; }
-h2 { font-size: 1.2em; margin-top: 2em; border-bottom: 1px solid #ccc; }
-table { border-collapse: collapse; margin: 0.8em 0; font-size: 0.9em; }
-th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; vertical-align: top; text-align: left; }
-th { background: #f2f2f2; }
-td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
-table.inner td { border: none; padding: 0.05em 0.5em 0.05em 0; }
-tr.chosen td { background: #e8f6ec; font-weight: 600; }
-tr.round td { background: #f7f7f7; font-weight: 600; }
-p.verdict { font-size: 1.1em; }
-.mismatch { color: #a93226; font-weight: 700; }
-.match { color: #1e8449; font-weight: 700; }
-.note { color: #555; font-size: 0.9em; }
-figure { margin: 1em 0; }
-figure svg { max-width: 100%; height: auto; }
-figcaption { color: #444; font-size: 0.9em; }
-"""
-
-
 # --------------------------------------------------------------------------- text
-def _e(text: object) -> str:
-    return html.escape(str(text), quote=True)
-
-
-def _num(value: Any, digits: int = 4) -> str:
-    """Numbers to the precision a fit supports (a few significant digits), never more."""
-    if isinstance(value, bool) or value is None:
-        return "—" if value is None else str(value)
-    if isinstance(value, int | np.integer):
-        return str(int(value))
-    if isinstance(value, float | np.floating):
-        x = float(value)
-        if not math.isfinite(x):
-            return "—"
-        if x == 0.0:
-            return "0"
-        if abs(x) >= 1e6 or abs(x) < 1e-3:
-            return f"{x:.{digits - 1}e}"
-        decimals = max(0, digits - 1 - math.floor(math.log10(abs(x))))
-        return f"{x:.{decimals}f}"
-    return str(value)
-
-
 def _constant(value: float) -> str:
     """A threshold as the code states it (50, not 50.00)."""
     return f"{value:g}"
@@ -134,8 +93,13 @@ def _sigma_key(key: str, keys: Sequence[str]) -> str | None:
     ``x_sigma``, and ``sigma_<unit>`` beside the one other key in that unit."""
     if f"{key}_sigma" in keys:
         return f"{key}_sigma"
-    if key.startswith("sigma_"):
+    if key.startswith("sigma_") or "_sigma_" in key:
         return None
+    # "coulomb_forward_sigma_percent" beside "coulomb_forward_percent_of_rated_…".
+    for other in keys:
+        stem, found, unit = other.partition("_sigma_")
+        if found and key.startswith(stem + "_") and unit in key.split("_"):
+            return other
     for other in keys:
         if other.startswith("sigma_"):
             unit = other.removeprefix("sigma_")
@@ -160,7 +124,9 @@ def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
             path = f"{prefix}.{key}" if prefix else key
             item = value[key]
             if key in sigmas and not isinstance(item, Mapping | list | tuple):
-                yield path, f"{_num(item)} ± {_num(value[sigmas[key]], 2)}"
+                yield path, f"{_num(item)} ± {_num(value[sigmas[key]], 2)}{_flag(key, item)}"
+            elif not isinstance(item, Mapping | list | tuple):
+                yield path, f"{_num(item)}{_flag(key, item)}"
             else:
                 yield from _flatten(item, path)
     elif isinstance(value, list | tuple):
@@ -171,50 +137,51 @@ def _flatten(value: Any, prefix: str = "") -> Iterator[tuple[str, str]]:
         yield prefix, _num(value)
 
 
+FRICTION_PLAUSIBLE_PERCENT = 25.0
+"""Drag above this share of the rated holding torque is flagged: a motor turning a disk or
+a belt freely loses a few percent to friction; more says the model put something else
+(a load, a misalignment, another effect) into its friction."""
+LOAD_ANGLE_PLAUSIBLE_RAD = math.pi / 4
+"""A load angle beyond 45° is flagged: pull-out is at 90°, and a unit at constant speed
+that far round its torque curve is near losing step, not calibrating."""
+
+
+def implausible(key: str, value: Any) -> str | None:
+    """Why a fitted value cannot be taken at face value, by what the key says it is."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(
+            float(value)):
+        return None
+    x = abs(float(value))
+    if "percent_of_rated_holding_torque" in key and x > FRICTION_PLAUSIBLE_PERCENT:
+        return (f"implausible: more than {FRICTION_PLAUSIBLE_PERCENT:g} % of the holding "
+                "torque lost to friction")
+    if key == "load_angle_rad" and x > LOAD_ANGLE_PLAUSIBLE_RAD:
+        return "implausible: beyond 45°, near pull-out (90°)"
+    if key.endswith("damping_ratio") and not 0.0 <= float(value) <= 1.0:
+        return "implausible: a damping ratio outside 0..1 is not a damped mode"
+    return None
+
+
+def _flag(key: str, value: Any) -> str:
+    why = implausible(key, value)
+    return f"  ⚠ {why}" if why else ""
+
+
 def _parameter_table(parameters: Mapping[str, Any]) -> str:
+    flagged = " class='implausible'"
     rows = "".join(
-        f"<tr><td>{_e(path)}</td><td class='num'>{_e(text)}</td></tr>"
+        f"<tr{flagged if '⚠' in text else ''}><td>{_e(path)}</td>"
+        f"<td class='num'>{_e(text)}</td></tr>"
         for path, text in _flatten(parameters)
     )
     return f"<table class='inner'>{rows}</table>" if rows else "—"
 
 
-def _table(header: Sequence[str], rows: Sequence[str]) -> str:
-    head = "".join(f"<th>{_e(h)}</th>" for h in header)
-    return f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table>"
-
-
-def _cells(*cells: str, numeric: Sequence[int] = ()) -> str:
-    """One row; cells are already HTML (escaped by the caller)."""
-    out = "".join(
-        f"<td class='num'>{c}</td>" if i in numeric else f"<td>{c}</td>"
-        for i, c in enumerate(cells)
-    )
-    return f"<tr>{out}</tr>"
-
-
 # --------------------------------------------------------------------------- figures
-def _svg(fig: Figure, salt: str) -> str:
-    """The figure as an inline <svg> element.
-
-    Text stays text (searchable, small); the hash salt keeps the clip-path ids
-    of different figures on one page from colliding.
-    """
-    buf = io.StringIO()
-    with rc_context({"svg.fonttype": "none", "svg.hashsalt": salt}):
-        fig.savefig(buf, format="svg", metadata={"Date": None})
-    text = buf.getvalue()
-    return text[text.index("<svg"):]
-
-
-def _figure(svg: str, caption: str) -> str:
-    return f"<figure>{svg}<figcaption>{_e(caption)}</figcaption></figure>"
-
-
 def _condition_axis(ax: Axes, labels: Sequence[str], *, show: bool = True) -> None:
     ax.set_xticks(range(len(labels)))
     if show:
-        ax.set_xticklabels(labels, rotation=45, ha="right", fontsize=7)
+        ax.set_xticklabels(labels, rotation=45, ha="right", fontsize=9)
     else:
         ax.tick_params(axis="x", labelbottom=False)
     ax.set_xlim(-0.6, len(labels) - 0.4)
@@ -280,9 +247,11 @@ def _chi2_per_dof(result: Fit) -> NDArray[np.float64]:
 
 
 def _residual_map_figure(d: Diagnosis, labels: Sequence[str]) -> str:
+    """Conditions down the side, orders across: condition labels read horizontally at a
+    readable size however many conditions a schedule has."""
     obs = d.observations
     conditions = len(obs.conditions)
-    maps = [_chi2_per_dof(d.nominal.fit), _chi2_per_dof(d.extended.fit)]
+    maps = [_chi2_per_dof(d.nominal.fit).T, _chi2_per_dof(d.extended.fit).T]
     values = np.concatenate([m.ravel() for m in maps])
     values = values[np.isfinite(values) & (values > 0)]
     low = float(values.min()) if values.size else 0.1
@@ -290,28 +259,27 @@ def _residual_map_figure(d: Diagnosis, labels: Sequence[str]) -> str:
     low = min(low, 0.5)  # keep the noise level (1) inside the scale
     high = max(high, 2.0 * low, 2.0)
     norm = LogNorm(vmin=low, vmax=high)
-    fig = Figure(figsize=(max(8.0, 0.9 * conditions + 3.0), 0.45 * obs.orders + 2.6),
+    fig = Figure(figsize=(max(7.0, 0.55 * obs.orders * 2 + 4.0), 0.34 * conditions + 1.8),
                  layout="constrained")
     axes = fig.subplots(1, 2, sharey=True, squeeze=False)[0]
     image = None
-    annotate = conditions <= 16
     for ax, grid, title in zip(axes, maps, ("nominal model", "extended model"), strict=True):
         shown = np.where(np.isfinite(grid) & (grid > 0), grid, low)
         image = ax.imshow(shown, norm=norm, cmap="viridis", aspect="auto", origin="upper")
-        ax.set_title(title, fontsize=10)
-        ax.set_yticks(range(obs.orders))
-        ax.set_yticklabels([str(k + 1) for k in range(obs.orders)], fontsize=8)
-        _condition_axis(ax, labels)
-        if annotate:
-            for (k, c), v in np.ndenumerate(grid):
-                if np.isfinite(v):
-                    bright = np.log(max(v, low) / low) > 0.6 * np.log(high / low)
-                    ax.text(c, k, f"{v:.2g}", ha="center", va="center", fontsize=6,
-                            color="black" if bright else "white")
-    axes[0].set_ylabel("harmonic order")
+        ax.set_title(title, fontsize=11)
+        ax.set_xticks(range(obs.orders))
+        ax.set_xticklabels([str(k + 1) for k in range(obs.orders)], fontsize=10)
+        ax.set_xlabel("harmonic order", fontsize=10)
+        ax.set_yticks(range(conditions))
+        ax.set_yticklabels(labels, fontsize=10)
+        for (c, k), v in np.ndenumerate(grid):
+            if np.isfinite(v):
+                bright = np.log(max(v, low) / low) > 0.6 * np.log(high / low)
+                ax.text(k, c, f"{v:.2g}", ha="center", va="center", fontsize=8,
+                        color="black" if bright else "white")
     assert image is not None
     bar = fig.colorbar(image, ax=list(axes), fraction=0.04)
-    bar.set_label("χ² per degree of freedom (1 = noise)")
+    bar.set_label("χ² per degree of freedom (1 = noise)", fontsize=10)
     return _svg(fig, "residuals")
 
 
@@ -359,6 +327,12 @@ def _verdict(d: Diagnosis, doc: Mapping[str, Any]) -> str:
     if doc["mismatch"]:
         verdict = ("<span class='mismatch'>Mismatch</span>: the paper's model does not "
                    "explain this recording within its noise.")
+    elif doc["located"]:
+        # Located cells without a mismatch: say both, or the headline contradicts the table.
+        verdict = (f"<span class='caution'>No mismatch that matters</span>: "
+                   f"{len(doc['located'])} disagreement(s) of the paper's model are located "
+                   "below, but no effect explains them better than noise on held-out "
+                   "conditions and what is left is noise: negligible for calibration.")
     else:
         verdict = ("<span class='match'>No mismatch</span>: the paper's model explains this "
                    "recording within its noise.")
@@ -444,13 +418,83 @@ def _effects_section(d: Diagnosis) -> str:
                    "fitted parameters (± 1σ)"), rows)
 
 
+def _value_sigma(doc: Mapping[str, Any], key: str, sigma_key: str | None, unit: str,
+                 digits: int = 4) -> tuple[str, str]:
+    value = doc.get(key)
+    sigma = doc.get(sigma_key) if sigma_key else None
+    text = _num(value, digits) + (f" ± {_num(sigma, 2)}" if sigma is not None else "")
+    return f"{text} {unit}".strip(), implausible(key, value) or ""
+
+
+def _nominal_rows(doc: Mapping[str, Any]) -> list[tuple[str, str, str]]:
+    """The chain, the sensor and the optimum as a motion engineer names them."""
+    quantities = [
+        ("rotor natural frequency at rated current", "rotor_natural_hz_at_rated_current",
+         "rotor_natural_hz_sigma", "Hz"),
+        ("rotor damping ratio", "rotor_damping_ratio", "rotor_damping_ratio_sigma", ""),
+        ("sensor delay", "sensor_delay_ms", "sensor_delay_ms_sigma", "ms"),
+        ("sensor bandwidth", "sensor_bandwidth_hz", None, "Hz"),
+        ("belt natural frequency (motor held)", "belt_hz_motor_held", "belt_hz_sigma", "Hz"),
+        ("belt damping ratio", "belt_damping_ratio", "belt_damping_ratio_sigma", ""),
+        ("load damping ratio", "load_damping_ratio", "load_damping_ratio_sigma", ""),
+        ("load / rotor inertia", "load_inertia_ratio", "load_inertia_ratio_sigma", ""),
+        ("gear ratio (metadata)", "gear_ratio", None, ""),
+    ]
+    rows = [("chain", _e(doc.get("chain", "—")), "")]
+    for label, key, sigma_key, unit in quantities:
+        if key in doc:
+            text, flag = _value_sigma(doc, key, sigma_key, unit)
+            rows.append((label, _e(text), flag))
+    modes = doc.get("chain_modes_at_rated_current") or []
+    if modes:
+        rows.append(("chain modes at rated current", _e("; ".join(
+            f"{_num(m['frequency_hz'])} Hz, ζ {_num(m['damping_ratio'], 2)}" for m in modes)),
+            ""))
+    trims = doc.get("optimal_trims") or {}
+    sig = doc.get("optimal_trims_sigma") or {}
+    if trims:
+        rows.append(("optimal trims", _e(
+            f"offsets {_num(trims['offset_a_mA'])} ± {_num(sig.get('offset_a_mA'), 2)} / "
+            f"{_num(trims['offset_b_mA'])} ± {_num(sig.get('offset_b_mA'), 2)} mA, gains "
+            f"{_num(trims['gain_a'], 5)} / {_num(trims['gain_b'], 5)}"), ""))
+    rows.append(("χ² per degree of freedom", _e(_num(doc.get("chi2_per_dof"), 3)), ""))
+    return rows
+
+
 def _nominal_section(doc: Mapping[str, Any]) -> str:
-    return (
-        "<p>What the nominal model found on all conditions (trims in the drive's units; the "
-        "chain's modes; the load angle of each condition and the friction it implies). "
-        "A parameter whose state is not <i>fitted</i> is not a result:</p>"
-        + _parameter_table(doc["nominal"])
-    )
+    nominal = doc["nominal"]
+    rows = [_cells(_e(label), value, f"<span class='caution'>{_e(flag)}</span>" if flag else "",
+                   css="implausible" if flag else "")
+            for label, value, flag in _nominal_rows(nominal)]
+    conditions = []
+    for c in nominal.get("load_angles", []):
+        label = _condition_of(c) or "—"
+        angle = c.get("load_angle_rad")
+        friction = c.get("friction_percent_of_rated_holding_torque")
+        flags = [f for f in (implausible("load_angle_rad", angle),
+                             implausible("percent_of_rated_holding_torque", friction)) if f]
+        conditions.append(_cells(
+            _e(label), _e(f"{_num(angle)} ± {_num(c.get('load_angle_sigma_rad'), 2)}"),
+            _e(_num(friction, 3)),
+            "<span class='caution'>" + _e("; ".join(flags)) + "</span>" if flags else "",
+            numeric=(1, 2), css="implausible" if flags else ""))
+    states = nominal.get("states") or {}
+    state_rows = [_cells(f"<code>{_e(name)}</code>", _e(j["state"]), _e(_num(j["value"])),
+                         _e(_num(j["bound"])), numeric=(2, 3))
+                  for name, j in states.items()]
+    parts = [
+        "<p>What the nominal model found on all conditions, with 1σ. Values a motor on this "
+        "fixture cannot physically have are flagged ⚠: the model fitted something else "
+        "into them.</p>",
+        _table(("quantity", "value ± 1σ", "plausibility"), rows),
+        "<p>Per condition: the load angle the rotor sits at, and the drag it implies.</p>",
+        _table(("condition", "load angle (rad) ± 1σ", "friction (% of rated holding torque)",
+                "plausibility"), conditions),
+    ]
+    if state_rows:
+        parts += ["<p>Parameters not simply fitted (at a bound, or fixed): not results.</p>",
+                  _table(("parameter", "state", "value", "bound"), state_rows)]
+    return "".join(parts)
 
 
 def _skipped_section(d: Diagnosis) -> str:
@@ -604,10 +648,8 @@ def render_html(diagnosis: Diagnosis, *, source: str) -> str:
     serial = diagnosis.observations.metadata.serial
     labels = [key.label() for key in diagnosis.observations.conditions]
     parts = [
-        "<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>",
-        f"<title>Diagnosis of {_e(serial)}</title><style>{_STYLE}</style></head><body>",
         f"<h1>Diagnosis of drive {_e(serial)}</h1>",
-        f"<p class='note'>Recording: {_e(source)}</p>",
+        f"<p class='note'>Recording: <span class='path'>{_e(source)}</span></p>",
         _verdict(diagnosis, doc),
         "<h2>Named effects</h2>",
         _effects_section(diagnosis),
@@ -641,9 +683,8 @@ def render_html(diagnosis: Diagnosis, *, source: str) -> str:
         _held_out_table(diagnosis, labels),
         "<h2>Method</h2>",
         _method(),
-        "</body></html>\n",
     ]
-    return "\n".join(parts)
+    return page(f"Diagnosis of {serial}", parts)
 
 
 def write_report(diagnosis: Diagnosis, path: Path, *, source: str) -> Path:

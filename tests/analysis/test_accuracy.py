@@ -27,9 +27,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from station.analysis.pipeline import Analysis, AnalysisOptions, MethodChoice, analyze
+from station.analysis.pipeline import Analysis, AnalysisOptions, analyze
 from station.analysis.reader import read_recording
-from station.core import LoadKind, Method, Trims
+from station.core import LoadKind, Method, MethodChoice, Trims
 from station.physics.params import derive_unit
 from station.recording import LogFormat
 from station.schedules import SweepPlan, calibration_schedule

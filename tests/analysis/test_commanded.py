@@ -22,14 +22,13 @@ from station.analysis.estimate import TrimAxis, fit_parabola
 from station.analysis.harmonics import period_phasors, phase_drift
 from station.analysis.pipeline import (
     AnalysisOptions,
-    MethodChoice,
     estimate_condition,
     group_conditions,
     measure,
 )
 from station.analysis.segments import holds
 from station.analysis.timeline import FrameKind, Timeline, build_timeline
-from station.core import Method
+from station.core import Method, MethodChoice
 from station.errors import RecordingError
 from tests.metadata import icd_metadata
 

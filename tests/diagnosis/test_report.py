@@ -21,8 +21,18 @@ import pytest
 from station.analysis.reader import read_recording
 from station.core import Effect
 from station.diagnosis.diagnose import Diagnosis, LocatedKind, LoneHold, Unexplained, diagnose
-from station.diagnosis.report import MAX_HARMONIC_ROWS, _chi2, render_html, write_report
+from station.diagnosis.report import (
+    MAX_HARMONIC_ROWS,
+    _chi2,
+    _flatten,
+    _nominal_section,
+    render_html,
+    write_report,
+)
+from station.htmlpage import num as _num
 from station.sim.concealed import Case, TrialClass, plan_trial, record_trial
+from station.views import diagnosis_view
+from tests.browser import overflow_px
 
 SOURCE = "recordings/SN900024-characterize.blf"
 CASE = Case(TrialClass(frozenset({Effect.DETENT_TORQUE})), 24)
@@ -184,3 +194,64 @@ def test_rewriting_a_report_replaces_it_whole_and_escapes_text(
 def test_report_leaves_no_figure_open(page: str) -> None:
     assert page
     assert plt.get_fignums() == []
+
+
+def test_report_shows_the_nominal_model_as_physical_quantities_with_sigma(
+    diagnosis: Diagnosis, page: str,
+) -> None:
+    text = _text(page)
+    nominal = diagnosis.to_dict()["nominal"]
+    assert "rotor natural frequency at rated current" in text
+    assert f"{_num(nominal['rotor_natural_hz_at_rated_current'])} ± " in text
+    assert "load_angles[" not in text  # no dotted keys: a table per condition instead
+    for key in diagnosis.observations.conditions:
+        assert f"<td>{key.label()}</td>" in page
+
+
+def _nominal_doc(friction_percent: float, load_angle: float) -> dict[str, object]:
+    condition = {"amplitude_mA": 1000, "electrical_hz": 20.0, "direction": 1,
+                 "load_angle_rad": load_angle, "load_angle_sigma_rad": 0.001,
+                 "friction_percent_of_rated_holding_torque": friction_percent}
+    return {"nominal": {"chain": "rigid", "rotor_natural_hz_at_rated_current": 120.0,
+                        "rotor_natural_hz_sigma": 0.1, "rotor_damping_ratio": 0.07,
+                        "rotor_damping_ratio_sigma": 0.001, "chi2_per_dof": 1.1,
+                        "load_angles": [condition], "states": {}}}
+
+
+def test_report_flags_fitted_values_no_motor_on_the_fixture_can_have() -> None:
+    plausible = _nominal_section(_nominal_doc(3.0, 0.05))
+    assert "implausible" not in plausible
+    flagged = _nominal_section(_nominal_doc(52.0, 0.88))
+    assert flagged.count("<tr class='implausible'>") == 1  # the one condition's row
+    assert "more than 25 % of the holding torque lost to friction" in flagged
+    assert "beyond 45°, near pull-out (90°)" in flagged
+    # Effect parameters are flagged by what their keys say they are, σ beside the value.
+    rows = dict(_flatten({"coulomb_forward_percent_of_rated_holding_torque": 37.0,
+                          "coulomb_forward_sigma_percent": 0.5}))
+    assert rows == {"coulomb_forward_percent_of_rated_holding_torque":
+                    "37.00 ± 0.50  ⚠ implausible: more than 25 % of the holding torque lost "
+                    "to friction"}
+
+
+def test_the_headline_agrees_with_what_is_located(diagnosis: Diagnosis) -> None:
+    calm = replace(diagnosis, effects=(), findings=(),
+                   unexplained=Unexplained(chi2=900.0, values=1000, significant=False))
+    doc = calm.to_dict()
+    assert not doc["mismatch"] and doc["located"], "the case must locate disagreements"
+    text = _text(render_html(calm, source=SOURCE))
+    assert "No mismatch that matters" in text
+    assert f"{len(doc['located'])} disagreement(s) of the paper's model are located" in text
+    assert "No mismatch: the paper's model explains" not in text
+    doc["serial"], doc["recording"] = "SN1", SOURCE
+    doc["conditions"] = [c.label() for c in calm.observations.conditions]
+    head = diagnosis_view(doc).renderables[0]
+    assert str(head).startswith("SN1: no mismatch that matters")
+
+
+def test_the_page_reads_on_a_desktop_and_on_a_phone_without_sideways_scrolling(
+    report_path: Path, chromium: str, tmp_path: Path,
+) -> None:
+    page = tmp_path / "diagnosis.html"
+    page.write_text(report_path.read_text(encoding="utf-8"), encoding="utf-8")
+    for width in (1400, 400):
+        assert overflow_px(chromium, page, width) == 0, width

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from station import benches
+from station.bench_names import BenchFileError
 from station.benches import SIM_MODBUS_SPEC, SIM_SPEC, BenchSpec, parse_bench
 from station.core import NOMINAL_TRIMS
 from station.runs import Run, Verdict
@@ -204,7 +204,7 @@ def test_faults_in_a_bench_file_are_read_strictly() -> None:
     assert spec.sim is not None
     assert spec.sim.faults == (Fault(FaultKind.POWER_CYCLE, 2.5),
                                Fault(FaultKind.SENSOR_FRAMES_LOST, 1.0, 12))
-    with pytest.raises(benches.BenchFileError) as refused:
+    with pytest.raises(BenchFileError) as refused:
         parse_bench('[sim]\n[[sim.faults]]\nkind = "gremlins"\n[[sim.faults]]\n'
                     'kind = "power_cycle"\ncount = 3\nwhen = 1\n', source="bad.toml")
     message = str(refused.value)
