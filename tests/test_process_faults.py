@@ -25,13 +25,17 @@ from pathlib import Path
 
 import pytest
 
-from station import cli
+from station import records
 from station.cli import main
 from station.runs import Verdict
 from station.signals import Stopped, held, stop_on_signals, stop_reason
+from station.sim import record as sim_record
 from station.store import Store
 
 STEP_TIMEOUT_S = 60.0
+SWEEPING = "s  sweep round "
+"""What the operator's step line shows once the sweeps run ("step 4 of 9  0.6 s  sweep round
+1/3: …")."""
 """Generous for a loaded 2-core CI machine; a healthy run takes about 10 s."""
 
 LOCKED = "database is locked"
@@ -122,7 +126,8 @@ def test_a_stop_outside_any_run_exits_3_naming_the_signal(
         _deliver(signal.SIGTERM)
         pytest.fail("the signal must stop the recording")
 
-    monkeypatch.setattr(cli, "record_simulation", record)
+    # The command imports the simulator when it runs: patched where it is imported from.
+    monkeypatch.setattr(sim_record, "record_simulation", record)
     before = signal.getsignal(signal.SIGTERM)
     code, err = _main(["sim", "record", str(tmp_path / "out.blf"), "--serial", "SN123",
                        "--schedule", "calibration"], monkeypatch, capsys)
@@ -137,7 +142,7 @@ def test_ctrl_c_in_a_short_command_exits_3_not_typer_s_130(
     def interrupted(*args: object) -> None:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "query", interrupted)
+    monkeypatch.setattr(records, "query", interrupted)
     code, err = _main(["query", "--db", str(tmp_path / "station.db")], monkeypatch, capsys)
     assert code == 3
     assert "aborted" in err
@@ -244,7 +249,7 @@ def test_a_signal_mid_sweep_ends_the_run_aborted_with_its_recording_and_exit_3(
     db = tmp_path / "results" / "station.db"
     station = _start(["calibrate", "SN123", "--db", str(db)], env, tmp_path, "calibrate",
                      processes)
-    station.wait_for("sweep")
+    station.wait_for(SWEEPING, anywhere=True)
     first, *more = signals
     station.process.send_signal(first)
     if more:
@@ -270,7 +275,7 @@ def test_after_kill_9_the_run_stays_open_and_the_next_start_closes_it(
 ) -> None:
     db = tmp_path / "results" / "station.db"
     killed = _start(["calibrate", "SN123", "--db", str(db)], env, tmp_path, "killed", processes)
-    killed.wait_for("sweep")
+    killed.wait_for(SWEEPING, anywhere=True)
     killed.process.kill()
     assert killed.wait() == -signal.SIGKILL
     pid = killed.process.pid
@@ -419,7 +424,7 @@ def test_qa_reads_while_stations_write_never_meet_a_locked_database(
     qa = _start([str(script), str(db), str(stop)], env, tmp_path, "qa", processes, module=False)
     go.touch()
     # And QA's command line in a fresh process, opening the file mid-calibration.
-    calibration.wait_for("sweep")
+    calibration.wait_for(SWEEPING, anywhere=True)
     result = _cli(["query", "--json", "--db", str(db)], env)
     assert result.returncode == 0, result.stderr
     assert LOCKED not in result.stderr
