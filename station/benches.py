@@ -21,9 +21,9 @@ import importlib
 import logging
 import tomllib
 import uuid
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
@@ -69,7 +69,10 @@ from station.simsettings import COUNTED_KINDS, Fault, FaultKind, SimSettings
 from station.tomltable import TomlTable, toml_error
 
 if TYPE_CHECKING:
-    from station.sim.bench import SimBench
+    from station.sim.bench import SimBench, SimBenchConfig
+
+SimulatorFactory = Callable[["SimBenchConfig"], "SimBench"]
+"""Builds a simulated bench's devices from their configuration (``station.sim.bench``)."""
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +126,10 @@ class BenchSpec:
     sim: SimSettings | None = None
     source: str = SIM_BENCH
     modbus: ModbusSettings | None = None  # with transport MODBUS
+    # What builds the simulated devices of a simulated bench: the simulator's own
+    # ``SimBench``, loaded by name, when None. Tests inject one that watches the benches
+    # a calibration opens (as python-can takes a bus class): never a flag in the runtime.
+    simulator: SimulatorFactory | None = field(default=None, compare=False, repr=False)
 
     @property
     def simulated(self) -> bool:
@@ -440,7 +447,8 @@ def open_bench(spec: BenchSpec, serial: Serial) -> Iterator[BenchSession]:
         if spec.sim is not None:
             settings = spec.sim
             simulator = importlib.import_module(SIMULATOR)
-            sim_bench = stack.enter_context(simulator.SimBench(simulator.SimBenchConfig(
+            factory = spec.simulator or simulator.SimBench
+            sim_bench = stack.enter_context(factory(simulator.SimBenchConfig(
                 serial=settings.unit or serial.label,
                 load=settings.load if settings.drawn is None else settings.drawn.load,
                 effects=settings.effects,

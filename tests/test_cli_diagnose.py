@@ -22,6 +22,9 @@ from station.schedules import Hold, Phase, Schedule, ScheduleName, velocity_for
 from station.serials import parse_serial
 from station.sim.record import SimRecordRequest, record_schedule
 
+# Characterizations and diagnoses through the command line: about a minute.
+pytestmark = pytest.mark.slow
+
 SERIAL = "SN4242"
 TRIMS = Trims(30.0, -20.0, 10100.0, 9900.0)
 

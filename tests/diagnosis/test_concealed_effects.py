@@ -63,6 +63,8 @@ from station.sim.concealed import run_trial as run
 from station.sim.inprocess import simulate_timeline
 from station.sim.population import draw_unit
 
+pytestmark = pytest.mark.slow  # fifteen trials recorded and diagnosed: about four minutes
+
 SMOKE_SCORE = 0.5
 """Mean score over one trial per class below which the diagnosis has surely regressed.
 Development trials score about 0.7 (one trial per class has a standard error near 0.1);

@@ -33,6 +33,15 @@ from station.errors import DeviceTimeout, InputError
 SENSOR_COB = 0x190
 DRIVE_COB = 0x181
 
+ON_TIME_S = 0.25
+"""The deadline of frames a responder sends at once. Generous on purpose: on a loaded
+2-core machine the responder's thread may wait tens of milliseconds for a core, and a
+deadline it misses there would be taken for lateness the test did not make. Lateness
+is made by withholding a frame until the next SYNC (``LATE``), never by sleeping."""
+
+LATE = -1
+"""What an ``answer`` returns for a frame answered only after the next SYNC, with it."""
+
 
 def _channel() -> str:
     return f"test-canbus-{uuid.uuid4().hex}"
@@ -40,13 +49,24 @@ def _channel() -> str:
 
 @contextmanager
 def responder(channel: str, answer: Callable[[int, int], list[int]]) -> Iterator[list[int]]:
-    """A fake bench: on each SYNC (n-th, counter c) it sends the COB-IDs ``answer(n, c)``."""
+    """A fake bench: on each SYNC (n-th, counter c) it sends the COB-IDs ``answer(n, c)``;
+    ``LATE`` in place of a COB-ID holds that frame back until the next SYNC, which the
+    station sends only once the frame's deadline has passed: late for certain, however
+    fast or slow the machine."""
     counters: list[int] = []
+    held: list[int] = []
     with open_network(BusConfig(channel=channel)) as network:
 
         def on_sync(can_id: int, data: bytearray, timestamp: float) -> None:
             counters.append(data[0])
-            for cob_id in answer(len(counters), data[0]):
+            for cob_id in held:
+                network.send_message(cob_id, bytes(8))
+            held.clear()
+            wanted = answer(len(counters), data[0])
+            if LATE in wanted:
+                held.extend(c for c in wanted if c != LATE)
+                return
+            for cob_id in wanted:
                 network.send_message(cob_id, bytes(8))
 
         network.subscribe(SYNC_COB_ID, on_sync)
@@ -161,15 +181,18 @@ def test_stepped_sync_counts_a_late_frame_as_missed_and_then_keeps_in_step() -> 
     channel = _channel()
 
     def answer(n: int, counter: int) -> list[int]:
-        # SYNC 5 is answered after the deadline (but before the next one); later
-        # answers are slow enough that only a clock really waiting for them keeps up.
-        time.sleep(0.08 if n == 5 else 0.002)
+        # SYNC 5 is answered after its deadline, with SYNC 6; later answers are slow
+        # enough that only a clock really waiting for them keeps up.
+        if n == 5:
+            return [SENSOR_COB, LATE]
+        time.sleep(0.002)
         return [SENSOR_COB]
 
     with (
         responder(channel, answer) as counters,
         open_network(BusConfig(channel=channel)) as network,
-        SteppedSync(network, expected_cob_ids={SENSOR_COB: "sensor"}, timeout_s=0.05) as clock,
+        SteppedSync(network, expected_cob_ids={SENSOR_COB: "sensor"},
+                    timeout_s=ON_TIME_S) as clock,
     ):
         clock.advance(20)
         assert clock.missed == {SENSOR_COB: 1}
@@ -185,7 +208,8 @@ def test_stepped_sync_writes_off_a_frame_the_device_never_sent_and_carries_on() 
     with (
         responder(channel, lambda n, c: [] if n == 5 else [SENSOR_COB]),
         open_network(BusConfig(channel=channel)) as network,
-        SteppedSync(network, expected_cob_ids={SENSOR_COB: "sensor"}, timeout_s=0.02) as clock,
+        SteppedSync(network, expected_cob_ids={SENSOR_COB: "sensor"},
+                    timeout_s=ON_TIME_S) as clock,
     ):
         clock.advance(40)
         assert clock.missed == {SENSOR_COB: 1}
@@ -200,7 +224,7 @@ def test_stepped_sync_raises_device_timeout_naming_the_silent_device() -> None:
         SteppedSync(
             network,
             expected_cob_ids={SENSOR_COB: "sensor", DRIVE_COB: "drive"},
-            timeout_s=0.01,
+            timeout_s=ON_TIME_S,
             max_missing_cycles=3,
         ) as clock,
     ):
@@ -217,7 +241,8 @@ def test_stepped_sync_tolerates_sporadic_losses_below_the_limit() -> None:
         responder(channel, lambda n, c: [] if n % 2 else [SENSOR_COB]),
         open_network(BusConfig(channel=channel)) as network,
         SteppedSync(
-            network, expected_cob_ids={SENSOR_COB: "sensor"}, timeout_s=0.01, max_missing_cycles=2
+            network, expected_cob_ids={SENSOR_COB: "sensor"}, timeout_s=ON_TIME_S,
+            max_missing_cycles=2
         ) as clock,
     ):
         clock.advance(10)
@@ -294,9 +319,7 @@ def test_scattered_late_frames_in_one_long_batch_are_not_taken_for_a_silent_devi
 
     def answer(n: int, counter: int) -> list[int]:
         # Every tenth SYNC is answered after the deadline: a miss, but never two in a row.
-        if n % 10 == 5:
-            time.sleep(0.03)
-        return [SENSOR_COB]
+        return [SENSOR_COB, LATE] if n % 10 == 5 else [SENSOR_COB]
 
     with (
         responder(channel, answer),
@@ -304,7 +327,7 @@ def test_scattered_late_frames_in_one_long_batch_are_not_taken_for_a_silent_devi
         SteppedSync(
             network,
             expected_cob_ids={SENSOR_COB: "sensor"},
-            timeout_s=0.02,
+            timeout_s=ON_TIME_S,
             max_missing_cycles=2,
         ) as clock,
     ):

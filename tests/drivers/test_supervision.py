@@ -70,7 +70,7 @@ def test_a_drive_that_reboots_by_itself_is_noticed_but_its_own_reset_is_not(
     drive.reset()  # the station's own: expected
     drive.check_alive()
     bench.drive.power_cycle()
-    deadline = time.monotonic() + 1.0
+    deadline = time.monotonic() + 10.0  # generous: a wait for the boot-up, not a speed limit
     while time.monotonic() < deadline:
         try:
             drive.check_alive()
@@ -94,7 +94,8 @@ def _send_from_bench(bench: SimBench, message: can.Message) -> None:
     bus.send(message)
 
 
-def _wait_for(condition: Callable[[], bool], timeout_s: float = 1.0) -> None:
+def _wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    """Until ``condition`` holds; generous, since it returns as soon as it does."""
     deadline = time.monotonic() + timeout_s
     while not condition() and time.monotonic() < deadline:
         time.sleep(0.005)
@@ -123,7 +124,7 @@ def test_the_clock_calls_its_supervisor_and_stops_when_it_raises(
     with CanopenDrive(network) as drive, sensor:
         cob_ids = bench_tpdo_cob_ids(1, 16, drive_name=drive.name, sensor_name=sensor.name)
         calls: list[int] = []
-        with SteppedSync(network, expected_cob_ids=cob_ids, timeout_s=0.1) as clock:
+        with SteppedSync(network, expected_cob_ids=cob_ids, timeout_s=0.5) as clock:
             clock.supervise(lambda: calls.append(clock.cycles))
             clock.advance(50)
             assert calls and calls[-1] == 50
@@ -133,9 +134,11 @@ def test_the_clock_calls_its_supervisor_and_stops_when_it_raises(
 
             clock.supervise(dead)
             bench.sensor.fall_silent()
-            time.sleep(0.1)
-            started = time.monotonic()
+            time.sleep(0.1)  # past max_age_s: the heartbeat is stale however fast this runs
+            before = clock.cycles
             with pytest.raises(DeviceTimeout, match="sensor: silent"):
                 clock.advance(50)
-            # Stopped at the first stall, not after 20 missed frames.
-            assert time.monotonic() - started < 1.0
+            # Stopped at the first stall, not after 20 missed frames: counted in cycles,
+            # not in seconds, which a loaded machine stretches.
+            assert clock.cycles - before <= 2
+            assert max(clock.missed.values()) <= 1
