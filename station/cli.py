@@ -958,7 +958,7 @@ def report_command(
         return
     for note in written.notes:
         stderr.print(f"[yellow]note:[/] {escape(note)}", highlight=False)
-    stdout.print(str(written.path), soft_wrap=True, highlight=False)
+    _show(str(written.path))
 
 
 RECIPE_COLUMNS = ("name", "version", "method", "description", "electrical_hz", "amplitude_mA",

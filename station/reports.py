@@ -105,9 +105,12 @@ def _analysed(recording: Path, settle_periods: int | None = None
 
 def write_run_report(run: Run, history: list[Run], out: Path | None = None) -> UnitReport:
     """The page of a run on record, beside its recording unless ``out`` says where."""
+    recording = Path(run.recording) if run.recording else None
+    if recording is None and out is None:
+        raise InputError(f"run {run.run_id} of {run.serial} has no recording to put a "
+                         "report beside: give --out")
     notes: list[str] = []
     analysis: Analysis | None = None
-    recording = Path(run.recording) if run.recording else None
     if recording is None:
         notes.append(f"run {run.run_id} has no recording: it ended before the motor moved"
                      + (f" ({run.reason})" if run.reason else ""))
@@ -122,9 +125,7 @@ def write_run_report(run: Run, history: list[Run], out: Path | None = None) -> U
         if problem is not None:
             notes.append(problem)
     if out is None:
-        if recording is None:
-            raise InputError(f"run {run.run_id} of {run.serial} has no recording to put a "
-                             "report beside: give --out")
+        assert recording is not None  # refused above
         out = report_path_for(recording)
     from station.unit_report import write_unit_report  # noqa: PLC0415 - matplotlib, scipy
 

@@ -26,7 +26,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.advice import next_step
-from station.analysis.estimate import AXES, ParabolaFit, TrimAxis, TrimEstimate, TrimSigma
+from station.analysis.estimate import (
+    AXES,
+    ParabolaFit,
+    TrimAxis,
+    TrimEstimate,
+    TrimSigma,
+    trim_coordinate,
+)
 from station.analysis.pipeline import Analysis, Measured, tangential_signal
 from station.core import Method, Trims
 from station.htmlpage import cells, escape, figure, key_values, num, page, svg, table
@@ -53,7 +60,7 @@ _AXIS_LABEL = {
 
 
 @dataclass(frozen=True)
-class Holds:
+class BeforeAfter:
     """The holds the page compares: the first at the trims the unit came with, the last
     at the trims it leaves with (a calibration's baseline and verification)."""
 
@@ -61,7 +68,7 @@ class Holds:
     after: Measured | None
 
     @classmethod
-    def of(cls, measured: Sequence[Measured], run: Run | None) -> Holds:
+    def of(cls, measured: Sequence[Measured], run: Run | None) -> BeforeAfter:
         start = run.trims_before if run is not None else None
         end = run.trims_after if run is not None and run.trims_stored else None
         before = next((m for m in measured if start is not None and m.segment.trims == start),
@@ -87,21 +94,13 @@ def _new_figure(width: float = 4.4, height: float = 3.3) -> tuple[Figure, Axes]:
 def _lines(measured: Sequence[Measured], axis: TrimAxis) -> list[list[Measured]]:
     """Holds grouped into sweeps along ``axis``: the other two trims equal, two or more
     positions along it. Holds off every such line say nothing about this axis alone."""
-    groups: dict[tuple[float, float], list[Measured]] = {}
+    groups: dict[tuple[float, ...], list[Measured]] = {}
     others = [a for a in AXES if a is not axis]
     for m in measured:
-        key = tuple(_coordinate(m.segment.trims, a) for a in others)
-        groups.setdefault((key[0], key[1]), []).append(m)
+        groups.setdefault(tuple(trim_coordinate(m.segment.trims, a) for a in others),
+                          []).append(m)
     return [g for g in groups.values()
-            if len({_coordinate(m.segment.trims, axis) for m in g}) >= 2]
-
-
-def _coordinate(trims: Trims, axis: TrimAxis) -> float:
-    if axis is TrimAxis.OFFSET_A:
-        return trims.offset_a_mA
-    if axis is TrimAxis.OFFSET_B:
-        return trims.offset_b_mA
-    return (trims.gain_a - trims.gain_b) / 2.0
+            if len({trim_coordinate(m.segment.trims, axis) for m in g}) >= 2]
 
 
 @dataclass(frozen=True)
@@ -128,7 +127,7 @@ class Band:
         s = self.sigma
         sigma = {TrimAxis.OFFSET_A: s.offset_a_mA, TrimAxis.OFFSET_B: s.offset_b_mA,
                  TrimAxis.GAIN_SPLIT: s.gain_a}[axis]
-        return _coordinate(self.trims, axis), sigma
+        return trim_coordinate(self.trims, axis), sigma
 
 
 def _sweep_figure(measured: Sequence[Measured], axis: TrimAxis, band: Band | None,
@@ -138,7 +137,7 @@ def _sweep_figure(measured: Sequence[Measured], axis: TrimAxis, band: Band | Non
     lowest = math.inf
     for i, line in enumerate(sorted(_lines(measured, axis),
                                     key=lambda g: measured.index(g[0]))):
-        x = np.array([_coordinate(m.segment.trims, axis) for m in line])
+        x = np.array([trim_coordinate(m.segment.trims, axis) for m in line])
         y = np.array([abs(m.harmonics.h(order)) ** 2 for m in line])
         # σ of |H|² from the phasor's σ: 2|H|σ, and at least σ² where |H| is near 0.
         var = np.array([m.harmonics.var(order) for m in line])
@@ -167,7 +166,7 @@ def _sweep_figure(measured: Sequence[Measured], axis: TrimAxis, band: Band | Non
     return svg(fig, f"sweep-{axis.value}")
 
 
-def _harmonics_figure(holds: Holds) -> str:
+def _harmonics_figure(holds: BeforeAfter) -> str:
     fig, ax = _new_figure()
     shown = [(holds.before, "before", _BEFORE)]
     if holds.after is not None:
@@ -201,7 +200,7 @@ def _window(m: Measured, signal: NDArray[np.float64], sync_period_s: float
     return t, y
 
 
-def _ripple_figure(analysis: Analysis, holds: Holds) -> str:
+def _ripple_figure(analysis: Analysis, holds: BeforeAfter) -> str:
     signal = tangential_signal(analysis.timeline)
     period = analysis.timeline.sync_period_s
     fig, ax = _new_figure()
@@ -217,16 +216,16 @@ def _ripple_figure(analysis: Analysis, holds: Holds) -> str:
 
 
 def _drift_figure(runs: Sequence[Run]) -> str:
-    stored = [r for r in runs if r.trims_stored and r.trims_after is not None]
+    stored = [(r, r.trims_after) for r in runs if r.trims_stored and r.trims_after is not None]
     fig, ax = _new_figure()
     x = np.arange(1, len(stored) + 1)
-    trims = [r.trims_after for r in stored if r.trims_after is not None]
+    trims = [t for _, t in stored]
     ax.plot(x, [t.offset_a_mA for t in trims], "o-", color=_BEFORE, label="offset A (mA)")
     ax.plot(x, [t.offset_b_mA for t in trims], "s-", color=_FIT, label="offset B (mA)")
-    ax.plot(x, [(t.gain_a - t.gain_b) / 2.0 for t in trims], "^-", color=_AFTER,
+    ax.plot(x, [trim_coordinate(t, TrimAxis.GAIN_SPLIT) for t in trims], "^-", color=_AFTER,
             label="gain split (1/10000)")
     ax.set_xticks(x)
-    ax.set_xticklabels([f"run {r.run_id}" for r in stored], fontsize=8, rotation=30)
+    ax.set_xticklabels([f"run {r.run_id}" for r, _ in stored], fontsize=8, rotation=30)
     ax.set_ylabel("trim stored", fontsize=11)
     ax.legend(fontsize=9)
     return svg(fig, "drift")
@@ -307,7 +306,7 @@ def _limits_section(run: Run) -> str:
                  [_limit_row(c) for c in run.limits])
 
 
-def _ripple_section(run: Run | None, holds: Holds) -> str:
+def _ripple_section(run: Run | None, holds: BeforeAfter) -> str:
     def hold(m: Measured | None) -> tuple[str, str]:
         if m is None:
             return "—", "—"
@@ -436,7 +435,7 @@ def _sweeps_section(analysis: Analysis, run: Run | None) -> str:
 
 def _figures_sections(analysis: Analysis, run: Run | None) -> list[str]:
     measured = analysis.primary.condition.measured
-    holds = Holds.of(measured, run)
+    holds = BeforeAfter.of(measured, run)
     after_caption = (" and the hold at the trims stored (after)" if holds.after is not None
                      else "; no hold at stored trims (nothing was stored)")
     return [

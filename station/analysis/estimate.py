@@ -58,6 +58,16 @@ _OFFSET_HELD_TOLERANCE_mA = 10.0
 """How far from the offsets' optimum a gain sweep may run before its split is suspect."""
 
 
+def trim_coordinate(trims: Trims, axis: TrimAxis) -> float:
+    """Where ``trims`` lie along ``axis``: an offset, or the gain split (half the
+    difference, the sum held)."""
+    if axis is TrimAxis.OFFSET_A:
+        return trims.offset_a_mA
+    if axis is TrimAxis.OFFSET_B:
+        return trims.offset_b_mA
+    return (trims.gain_a - trims.gain_b) / 2.0
+
+
 @dataclass(frozen=True)
 class TrimPoint:
     """One steady segment, reduced to what the estimators need."""
@@ -75,12 +85,7 @@ class TrimPoint:
     hidden: float = 0.0
 
     def coordinate(self, axis: TrimAxis) -> float:
-        t = self.trims
-        if axis is TrimAxis.OFFSET_A:
-            return t.offset_a_mA
-        if axis is TrimAxis.OFFSET_B:
-            return t.offset_b_mA
-        return (t.gain_a - t.gain_b) / 2.0
+        return trim_coordinate(self.trims, axis)
 
     def h(self, order: int) -> complex:
         return self.h1 if order == 1 else self.h2
