@@ -26,6 +26,7 @@ from bench import (
     plant_speed,
     recording_memory,
     soak,
+    suite_time,
 )
 from bench.analysis_speed import MinuteRecording
 from bench.record import BenchRecord, Goal
@@ -60,6 +61,7 @@ def _measures(minute: MinuteRecording) -> dict[str, Measure]:
         "diagnosis_speed": diagnosis_speed.measure,
         "diagnosis": diagnosis.measure,
         "soak": soak.measure,
+        "tests": suite_time.measure,
     }
 
 

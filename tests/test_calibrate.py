@@ -40,6 +40,7 @@ from station.sim.record import describe_unit
 from station.simsettings import SimSettings
 from station.steps import Step
 from station.store import Store
+from tests.cli import run_cli
 
 OFFSET_TOLERANCE_mA = 3.0
 GAIN_TOLERANCE = 30.0
@@ -51,17 +52,14 @@ NOMINAL = {"offset_a_mA": 0.0, "offset_b_mA": 0.0, "gain_a": 10000.0, "gain_b": 
 
 def _run(args: list[str], monkeypatch: pytest.MonkeyPatch,
          capsys: pytest.CaptureFixture[str]) -> tuple[int, Any]:
-    """The CLI in-process; returns the exit code and the parsed JSON on stdout (or None).
+    """The CLI in-process (``tests.cli``); returns the exit code and the parsed JSON on
+    stdout (or None).
 
-    What went to stderr stays readable as ``LAST_STDERR[0]``.
+    What went to stderr stays readable as ``LAST_STDERR[0]``, unwrapped.
     """
-    monkeypatch.setattr(sys, "argv", ["station", *args])
-    with pytest.raises(SystemExit) as stop:
-        main()
-    captured = capsys.readouterr()
-    LAST_STDERR[0] = " ".join(captured.err.split())  # the console may wrap a long message
-    out = captured.out
-    return int(stop.value.code or 0), json.loads(out) if out.strip() else None
+    outcome = run_cli(args, monkeypatch, capsys)
+    LAST_STDERR[0] = outcome.stderr
+    return outcome.code, outcome.doc if outcome.stdout.strip() else None
 
 
 LAST_STDERR = [""]

@@ -103,40 +103,66 @@ def test_characterize_runs_its_trim_steps_around_the_units_own_trims(
     assert offsets_a == {30, 70}
 
 
+@dataclass(frozen=True)
+class Rediagnosed:
+    """The characterization's recording diagnosed twice more through ``diagnose``: in one
+    process with a report to a file of its own, and in two worker processes without one."""
+
+    one_process: dict[str, Any]
+    two_processes: dict[str, Any]
+    report: Path
+    beside_before: set[Path]
+    beside_after: set[Path]
+
+
+@pytest.fixture(scope="module")
+def rediagnosed(
+    characterized: Characterized, tmp_path_factory: pytest.TempPathFactory,
+) -> Rediagnosed:
+    recording = Path(characterized.doc["recording"])
+    report = tmp_path_factory.mktemp("rediagnosed") / "report.html"
+    docs = []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("STATION_HOME", str(characterized.home))
+        for workers, output in (("1", ["--report", str(report)]), ("2", ["--no-report"])):
+            patch.setenv("STATION_DIAGNOSIS_WORKERS", workers)
+            before = set(recording.parent.iterdir())
+            out = report.parent / f"workers-{workers}.json"
+            stdout = sys.stdout
+            with out.open("w", encoding="utf-8") as sink:
+                sys.stdout = sink
+                try:
+                    assert _run(["diagnose", str(recording), "--json", *output]) == 0
+                finally:
+                    sys.stdout = stdout
+            docs.append(json.loads(out.read_text(encoding="utf-8")))
+    return Rediagnosed(docs[0], docs[1], report, before, set(recording.parent.iterdir()))
+
+
 def test_diagnose_reads_the_recording_again_to_the_same_findings(
-    characterized: Characterized, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    characterized: Characterized, rediagnosed: Rediagnosed,
 ) -> None:
-    recording = characterized.doc["recording"]
-    report = tmp_path / "report.html"
-    assert _run(["diagnose", recording, "--json", "--report", str(report)]) == 0
-    doc = json.loads(capsys.readouterr().out)
+    doc = rediagnosed.one_process
     assert doc["effects"] == characterized.doc["effects"]
     assert doc["fit"]["before"] == pytest.approx(characterized.doc["fit"]["before"])
-    assert report.is_file()
+    assert doc["report"] == str(rediagnosed.report)
+    assert rediagnosed.report.is_file()
 
 
 def test_diagnose_without_report_writes_nothing_beside_the_recording(
-    characterized: Characterized, capsys: pytest.CaptureFixture[str],
+    rediagnosed: Rediagnosed,
 ) -> None:
-    recording = Path(characterized.doc["recording"])
-    before = set(recording.parent.iterdir())
-    assert _run(["diagnose", str(recording), "--json", "--no-report"]) == 0
-    assert json.loads(capsys.readouterr().out)["report"] is None
-    assert set(recording.parent.iterdir()) == before
+    assert rediagnosed.two_processes["report"] is None
+    assert rediagnosed.beside_after == rediagnosed.beside_before
 
 
 def test_diagnose_fitting_in_worker_processes_gives_exactly_the_one_process_diagnosis(
-    characterized: Characterized, capsys: pytest.CaptureFixture[str],
-    monkeypatch: pytest.MonkeyPatch,
+    rediagnosed: Rediagnosed,
 ) -> None:
-    recording = characterized.doc["recording"]
-    docs = []
-    for workers in ("1", "2"):
-        monkeypatch.setenv("STATION_DIAGNOSIS_WORKERS", workers)
-        assert _run(["diagnose", recording, "--json", "--no-report"]) == 0
-        docs.append(json.loads(capsys.readouterr().out))
-    assert docs[0] == docs[1]
-    assert docs[0]["fit"]["after_chi2"] > 0
+    one, two = ({k: v for k, v in doc.items() if k != "report"}
+                for doc in (rediagnosed.one_process, rediagnosed.two_processes))
+    assert one == two
+    assert one["fit"]["after_chi2"] > 0
 
 
 def test_a_number_of_diagnosis_workers_that_is_no_number_is_an_input_error(

@@ -29,6 +29,7 @@ from station.records import statistics as recipe_statistics
 from station.rows import RunFilter
 from station.runs import LimitCheck, RecipeRef, Ripple, Run, RunKind, Verdict
 from station.store import Store
+from tests.cli import run_cli
 
 OFFSETS_A = (60.0, 64.0, 68.0, 72.0)
 H1_AFTER = (0.004, 0.006, 0.005, 0.007)
@@ -87,10 +88,8 @@ def db(tmp_path: Path) -> Path:
 
 def _cli(args: list[str], monkeypatch: pytest.MonkeyPatch,
          capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
-    monkeypatch.setattr(sys, "argv", ["station", *args])
-    with pytest.raises(SystemExit) as stop:
-        main()
-    return int(stop.value.code or 0), capsys.readouterr().out
+    outcome = run_cli(args, monkeypatch, capsys)
+    return outcome.code, outcome.stdout
 
 
 def test_statistics_give_mean_std_and_cpk_against_the_recipes_limits(db: Path) -> None:

@@ -122,16 +122,35 @@ if TYPE_CHECKING:  # not imported at run time: pytest would take the class for t
     from station.diagnosis.diagnose import Test
 
 
+# A case's plan, recording, observations and fits are made once per process and shared
+# by every test that reads them (a second to seconds each): they are frozen, and no test
+# changes them.
+_plan = functools.cache(plan_trial)
+
+
+@functools.cache
 def _timeline(case: Case) -> Timeline:
     """The case's recording, made in process."""
-    plan = plan_trial(case)
+    plan = _plan(case)
     return simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
                              substeps=PLANT_SUBSTEPS)
 
 
+@functools.cache
+def _observations(case: Case) -> Observations:
+    return observe(_timeline(case))
+
+
 def _observed(effect: Effect, seed: int) -> tuple[Observations, Case]:
     case = Case(TrialClass(frozenset({effect})), seed)
-    return observe(_timeline(case)), case
+    return _observations(case), case
+
+
+@functools.cache
+def _nominal_fit(case: Case) -> tuple[Observations, Nominal]:
+    """The case's observations as the nominal fit settles them, and that fit."""
+    with threadpool_limits(limits=1, user_api="blas"):
+        return nominal_of(_timeline(case))
 
 
 def _sensor_truth(sensor: SensorParams) -> dict[str, list[float]]:
@@ -143,7 +162,7 @@ def _sensor_truth(sensor: SensorParams) -> dict[str, list[float]]:
 
 def _truth_start(model: Model, case: Case) -> np.ndarray:
     """The model's parameters at the plant's own values where the model has them."""
-    unit = plan_trial(case).unit
+    unit = _plan(case).unit
     motor = unit.motor
     p = model.with_values(model.layout.start(), _sensor_truth(unit.sensor))
     sl = model.layout.slices
@@ -161,9 +180,7 @@ def _truth_start(model: Model, case: Case) -> np.ndarray:
 
 def _case_nominal(case: Case) -> Nominal:
     """The case's recording (made in process) and its nominal fit."""
-    timeline = _timeline(case)
-    with threadpool_limits(limits=1, user_api="blas"):
-        return nominal_of(timeline)[1]
+    return _nominal_fit(case)[1]
 
 
 def _with(nominal: Nominal, effect: Effect) -> Fit:
@@ -174,6 +191,7 @@ def _with(nominal: Nominal, effect: Effect) -> Fit:
         return fit_spec(base.model.obs, spec, base, nominal.free)
 
 
+@functools.cache
 def _added(case: Case, effect: Effect) -> Test:
     """The case's nominal fit, tested against the same with ``effect``'s group added (as
     the diagnosis fits and compares them)."""
@@ -208,7 +226,7 @@ def test_a_drifting_sensor_clock_is_found_from_the_recording_alone() -> None:
     """The periodogram of the segments' delays, its peaks and the sawtooth's phase give
     starts from which the fit lands on the plant's drift."""
     obs, case = _observed(Effect.SENSOR_CLOCK_DRIFT, 24)
-    truth = plan_trial(case).unit.sensor.clock_drift_ppm
+    truth = _plan(case).unit.sensor.clock_drift_ppm
     with threadpool_limits(limits=1, user_api="blas"):
         nominal = fit_nominal(obs).balanced
         model = Model(replace(nominal.model.spec,
@@ -228,7 +246,7 @@ def test_a_clocks_sawtooth_is_measured_at_its_full_size_so_its_rate_stands_out()
     few segments) was not among the periodogram's twelve peaks. Between the holds of one
     condition the delay must now advance as the plant's clock does."""
     obs, case = _observed(Effect.SENSOR_CLOCK_DRIFT, 45)
-    sensor = plan_trial(case).unit.sensor
+    sensor = _plan(case).unit.sensor
     with threadpool_limits(limits=1, user_api="blas"):
         nominal = fit_nominal(obs).balanced
         model = Model(replace(nominal.model.spec,
@@ -324,7 +342,7 @@ def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() ->
     """The plant's 1/√(1 + (I/I_s)²) is not the model's law; the fall between the lowest
     and the largest current recorded must still come out within 4σ of the plant's."""
     case = Case(TrialClass(frozenset({Effect.MAGNETIC_SATURATION})), 24)
-    motor = plan_trial(case).unit.motor
+    motor = _plan(case).unit.motor
     result = _added(case, Effect.MAGNETIC_SATURATION).larger.fit
     model = result.model
     lowest = float(np.min(model.obs.amplitude_A))
@@ -369,7 +387,7 @@ def test_a_once_per_revolution_load_without_airgap_modulation_is_an_eccentric_ro
     mismatch, until the group carried the load: nominal 7,161 held out, with it 1,175
     (its clean twin's nominal 1,395), at the plant's size and angle."""
     case = Case(TrialClass(frozenset({Effect.ROTOR_ECCENTRICITY})), 101)
-    plan = plan_trial(case)
+    plan = _plan(case)
     ecc = plan.unit.motor.eccentricity
     assert ecc is not None
     load_only = replace(ecc, relative=0.0, unbalance_Nm=10.0 * ecc.unbalance_Nm)
@@ -413,7 +431,7 @@ def test_an_eccentric_rotor_beside_strong_flux_harmonics_is_judged_against_wrong
     assert test.model_error < 0.1 * MODEL_ERROR_SHARE * test.smaller.explained
     assert test.significant
     fitted = abs(complex(*test.larger.fit.value("eccentricity")))
-    plant = plan_trial(both).unit.motor.eccentricity
+    plant = _plan(both).unit.motor.eccentricity
     assert plant is not None
     assert fitted == pytest.approx(plant.relative, rel=0.2)
     assert tied_to_rotor(test.smaller, test.larger)
@@ -450,7 +468,7 @@ def test_a_coupling_beside_a_strong_detent_is_found_from_a_start_its_first_rank_
     two best-ranked starts settled at χ² 690 and the coupling did not count."""
     test = _coupling_beside_detent()
     assert test.significant
-    plant = plan_trial(_DETENT_AND_COUPLING).unit.mechanics.coupling
+    plant = _plan(_DETENT_AND_COUPLING).unit.mechanics.coupling
     assert plant is not None
     fitted = math.exp(float(test.larger.fit.value("log_coupling_hz")[0]))
     assert fitted == pytest.approx(plant.resonance_hz, rel=0.1)
@@ -477,7 +495,7 @@ def test_a_larger_model_also_starts_from_the_chain_its_other_smaller_model_bent(
                         best, nominal.free, others=[other])
     assert best.chi2 > 10 * best.dof  # both bent
     assert pair.chi2 < 2 * pair.dof
-    belt = plan_trial(case).unit.mechanics.belt
+    belt = _plan(case).unit.mechanics.belt
     assert belt is not None
     plant_hz = belt_mode_motor_held_hz(belt)
     assert math.exp(float(pair.value("log_belt_hz")[0])) == pytest.approx(plant_hz, rel=0.1)
@@ -581,7 +599,7 @@ def test_a_coupling_that_is_the_declared_belt_itself_does_not_count_as_a_second_
     ``SETTLE_TRUST_CHI2``.)"""
     detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
     obs, case = _observed(detent, 1981511873)
-    unit = plan_trial(case).unit
+    unit = _plan(case).unit
     motor, belt = unit.motor, unit.mechanics.belt
     assert belt is not None
     plant_hz = belt_mode_motor_held_hz(belt)
@@ -634,7 +652,7 @@ def test_a_clean_belt_the_nominal_grid_missed_is_found_from_the_coupling_that_to
     declared belt (``coupling_as_belt``) it leaves 587, and the coupling gains nothing."""
     case = Case(TrialClass(frozenset(), frozenset({UnnamedEffect.SENSOR_NONLINEARITY})),
                 932460708)
-    plan = plan_trial(case)
+    plan = _plan(case)
     twin = draw_unit(case.seed, load=plan.unit.load, effects=frozenset(), unnamed=frozenset())
     timeline = simulate_timeline(twin, plan.schedule, seed=case.seed, loss=plan.loss,
                                  substeps=PLANT_SUBSTEPS)
@@ -656,7 +674,7 @@ def test_a_coupling_gets_its_spring_back_from_a_belt_that_had_taken_the_coupling
     detent, coupling = Effect.DETENT_TORQUE, Effect.LOAD_RESONANCE
     case = Case(TrialClass(frozenset({detent, coupling})), 1898614460, first_draw=True)
     obs = observe(_timeline(case))
-    unit = plan_trial(case).unit
+    unit = _plan(case).unit
     motor, belt, plant = unit.motor, unit.mechanics.belt, unit.mechanics.coupling
     assert belt is not None and plant is not None
     rotor = motor.rotor_inertia_kgm2
@@ -868,7 +886,7 @@ def test_holds_shorter_than_a_belts_decay_give_the_phasors_of_long_holds() -> No
     one usable speed, and the recording was refused; with the mode's ringing fitted out
     beside the harmonics, every hold gives the phasors that holds of 4 s give."""
     seed = 44
-    unit = plan_trial(Case(TrialClass(frozenset()), seed)).unit
+    unit = _plan(Case(TrialClass(frozenset()), seed)).unit
     ranges = RandomCharacterizationRanges(
         speeds=(2, 2), electrical_hz=(6.0, 10.0), amplitudes=(2, 2), hold_s=(0.45, 0.45),
         both_signs_probability=0.0)
@@ -910,7 +928,7 @@ def test_a_recording_clipped_at_all_but_one_speed_is_refused_with_what_to_change
     records the same schedule again with the same range; and at the widest range it must
     name the operating point instead, which is all that is left to change."""
     seed = 42
-    unit = plan_trial(Case(TrialClass(frozenset()), seed)).unit
+    unit = _plan(Case(TrialClass(frozenset()), seed)).unit
     ranges = RandomCharacterizationRanges(speeds=(2, 2), electrical_hz=(15.0, 30.0),
                                           amplitudes=(2, 2), hold_s=(0.6, 0.6))
     schedule = replace(random_characterization(np.random.default_rng(seed), ranges=ranges),
@@ -1027,11 +1045,8 @@ def test_each_trim_step_moves_the_rotor_along_its_spring_so_a_belt_beside_its_mo
     times its floor there, and the clean unit's nominal fit ended at χ²/dof 5.8 (a
     mismatch reported on a clean unit); with each segment's slip it is at the noise."""
     case = Case(TrialClass(), 61)
-    assert plan_trial(case).unit.mechanics.belt is not None
-    timeline = _timeline(case)
-    with threadpool_limits(limits=1, user_api="blas"):
-        _, nominal = nominal_of(timeline)
-    balanced = nominal.balanced
+    assert _plan(case).unit.mechanics.belt is not None
+    balanced = _case_nominal(case).balanced
     assert balanced.chi2 / balanced.dof < 1.4
     balance = balanced.residuals[balanced.model.harmonic_values:-1]
     assert float(np.sqrt(np.mean(balance**2))) < 1.0  # each segment's, in its floor's units
@@ -1148,7 +1163,7 @@ def test_a_belt_is_fitted_on_its_own_chain_whatever_its_load_and_phase_imbalance
     times the rotor's inertia; the top of the ranking was a load too light to matter,
     and from there the load's inertia ran to its bound (χ²/dof 39)."""
     timeline, case = _clean(seed)
-    unit = plan_trial(case).unit
+    unit = _plan(case).unit
     belt = unit.mechanics.belt
     assert belt is not None
     with threadpool_limits(limits=1, user_api="blas"):
@@ -1171,9 +1186,9 @@ def test_a_grid_prescreened_by_its_first_linear_pass_keeps_the_exact_rankings_be
     a model evaluation each; the first pass's own prediction ranks them almost as well, so
     only the best ``GRID_EXACT`` get the rest. Whatever a caller takes from the top (at most
     six points) must be what the exact ranking gives: same points, same χ²."""
-    timeline, _ = _clean(15)
+    clean = _observations(Case(TrialClass(), 15))
     with threadpool_limits(limits=1, user_api="blas"):
-        model = Model(ModelSpec(ChainKind.BELT, dc_balance=False), observe(timeline))
+        model = Model(ModelSpec(ChainKind.BELT, dc_balance=False), clean)
         starts = nominal_starts(model)
         for split in (False, True):
             full = screen(model, starts, split=split)
@@ -1190,7 +1205,7 @@ def test_a_polish_goes_on_where_the_trust_regions_svd_does_not_converge(
     """LAPACK's SVD behind each dense trust-region step can fail on a finite Jacobian
     (benchmark trial detent_torque@76034821): the polish must still improve on its
     start, not end the diagnosis."""
-    timeline, _ = _clean(15)
+    clean = _observations(Case(TrialClass(), 15))
     failed: list[bool] = []
 
     def no_convergence(*args: Any, **kwargs: Any) -> None:
@@ -1198,7 +1213,7 @@ def test_a_polish_goes_on_where_the_trust_regions_svd_does_not_converge(
         raise np.linalg.LinAlgError("SVD did not converge")
 
     with threadpool_limits(limits=1, user_api="blas"):
-        model = Model(ModelSpec(ChainKind.BELT), observe(timeline))
+        model = Model(ModelSpec(ChainKind.BELT), clean)
         (chi2_start, start), *_ = screen(model, nominal_starts(model))
         monkeypatch.setattr(trf, "svd", no_convergence)
         polished = polish(model, start, max_nfev=8)
@@ -1213,7 +1228,7 @@ def test_a_polish_going_on_from_a_stopped_one_reuses_its_jacobian_to_the_same_an
     the Jacobian each stopped with is the one the next stage's solver asks for first.
     Given it, the next stage must end exactly where making it again ends, with one
     Jacobian fewer."""
-    timeline, _ = _clean(15)
+    clean = _observations(Case(TrialClass(), 15))
     made: list[int] = []
     original = fit_module.jacobian
 
@@ -1222,7 +1237,7 @@ def test_a_polish_going_on_from_a_stopped_one_reuses_its_jacobian_to_the_same_an
         return original(model, p)
 
     with threadpool_limits(limits=1, user_api="blas"):
-        model = Model(ModelSpec(ChainKind.BELT), observe(timeline))
+        model = Model(ModelSpec(ChainKind.BELT), clean)
         (_, start), *_ = screen(model, nominal_starts(model))
         stopped = polish(model, start, max_nfev=3)
         assert not stopped.converged
@@ -1244,8 +1259,7 @@ def test_a_chain_grid_passed_once_for_every_linear_group_ranks_as_each_group_alo
     That holds only for groups whose blocks all start at zero and there leave the
     nominal's motion as it is (an eccentric rotor's unbalance is nonlinear, and moves the
     motion only away from zero): at a grid point they only add rows to its design."""
-    timeline, _ = _clean(15)
-    obs = observe(timeline)
+    obs = _observations(Case(TrialClass(), 15))
     spec = ModelSpec(ChainKind.BELT)
     nominal = Model(spec, obs)
     x = nominal_starts(nominal)[0]
@@ -1275,9 +1289,9 @@ def test_both_rankings_of_the_nominal_grid_made_from_one_design_are_each_screens
     """The nominal fit ranks its grid twice, with the gain errors held and with their
     difference solved (``fit_nominal``); both first passes are made from one linear
     design per point, and each ranking must be the one its own screen gives, to the bit."""
-    timeline, _ = _clean(15)
+    clean = _observations(Case(TrialClass(), 15))
     with threadpool_limits(limits=1, user_api="blas"):
-        model = Model(ModelSpec(ChainKind.BELT, dc_balance=False), observe(timeline))
+        model = Model(ModelSpec(ChainKind.BELT, dc_balance=False), clean)
         starts = nominal_starts(model)
         held, split = first_passes_shared(model, [model, model], starts, len(starts),
                                           split=[False, True])
@@ -1297,7 +1311,7 @@ def test_a_belt_whose_own_mode_lies_far_above_the_band_is_fitted_from_the_mode_i
     a clean unit was given a load resonance. Started again with that 69 Hz mode kept at
     every ratio, it fits to the noise, with the belt where it is."""
     timeline, case = _clean(72)
-    belt = plan_trial(case).unit.mechanics.belt
+    belt = _plan(case).unit.mechanics.belt
     assert belt is not None
     with threadpool_limits(limits=1, user_api="blas"):
         _, nominal = nominal_of(timeline)
@@ -1374,7 +1388,7 @@ def test_a_coupling_behind_a_belt_is_found_from_a_start_that_begins_far_off() ->
     the coupling then settled on a sliver of the rotor's inertia (χ² 6,089 for 1,594
     degrees of freedom) and the diagnosis named magnetic saturation instead."""
     case = Case(TrialClass(frozenset({Effect.LOAD_RESONANCE})), 202)  # development seed
-    unit = plan_trial(case).unit
+    unit = _plan(case).unit
     mechanics = unit.mechanics
     assert mechanics.coupling is not None and mechanics.belt is not None
     nominal = _case_nominal(case)
@@ -1866,9 +1880,7 @@ def test_the_floor_of_an_order_that_rides_alone_is_its_own_magnification() -> No
     """With no order coupled to another (the derivative each order's own spring against
     its own need), the floor carried through the whole derivative is each order's own
     magnification: its torque balance over its own spring less its need, as before."""
-    timeline, _ = _clean(204)
-    with threadpool_limits(limits=1, user_api="blas"):
-        obs, nominal = nominal_of(timeline)
+    obs, nominal = _nominal_fit(Case(TrialClass(), 204))
     fitted = nominal.free
     model, p = Model(fitted.model.spec, obs), fitted.params
     k = obs.orders
@@ -1963,7 +1975,7 @@ def test_a_loop_lag_beside_a_strong_current_distortion_is_named_when_it_leaves_t
     assert explains_the_rest(distortion, lagging)
     assert test.model_error == 0.0 and test.significant
     # The loop's time constant, each phase's: the plant's within a quarter.
-    amplifier = plan_trial(case).unit.amplifier
+    amplifier = _plan(case).unit.amplifier
     bandwidths = (amplifier.bandwidth_a_hz, amplifier.bandwidth_b_hz)
     truth = [1e3 / (2 * math.pi * hz) for hz in bandwidths if hz is not None]
     fitted = lagging.fit.params[lagging.fit.model.layout.slices["current_lag_ms"]]
