@@ -45,6 +45,19 @@ def _run(args: list[str]) -> int:
     return int(stop.value.code or 0)
 
 
+def _run_json(args: list[str], sink: Path) -> tuple[int, dict[str, Any]]:
+    """The command's exit code and its ``--json`` document, stdout written to ``sink``:
+    a module fixture has no capsys."""
+    stdout = sys.stdout
+    with sink.open("w", encoding="utf-8") as out:
+        sys.stdout = out
+        try:
+            code = _run(args)
+        finally:
+            sys.stdout = stdout
+    return code, json.loads(sink.read_text(encoding="utf-8"))
+
+
 def _drive_trims(serial: str) -> Trims:
     with open_bench(SIM_SPEC, parse_serial(serial)) as session:
         return session.drive.read_trims()
@@ -61,15 +74,7 @@ def characterized(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Characte
         with open_bench(SIM_SPEC, parse_serial(SERIAL)) as session:
             session.drive.write_trims(TRIMS)
             session.drive.store()
-        out = home / "out.json"
-        stdout = sys.stdout
-        with out.open("w", encoding="utf-8") as sink:
-            sys.stdout = sink
-            try:
-                code = _run(["characterize", SERIAL, "--json"])
-            finally:
-                sys.stdout = stdout
-        doc = json.loads(out.read_text(encoding="utf-8"))
+        code, doc = _run_json(["characterize", SERIAL, "--json"], home / "out.json")
         yield Characterized(doc, code, home, _drive_trims(SERIAL))
 
 
@@ -120,23 +125,20 @@ def rediagnosed(
     characterized: Characterized, tmp_path_factory: pytest.TempPathFactory,
 ) -> Rediagnosed:
     recording = Path(characterized.doc["recording"])
-    report = tmp_path_factory.mktemp("rediagnosed") / "report.html"
-    docs = []
+    folder = tmp_path_factory.mktemp("rediagnosed")
+    report = folder / "report.html"
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("STATION_HOME", str(characterized.home))
-        for workers, output in (("1", ["--report", str(report)]), ("2", ["--no-report"])):
-            patch.setenv("STATION_DIAGNOSIS_WORKERS", workers)
-            before = set(recording.parent.iterdir())
-            out = report.parent / f"workers-{workers}.json"
-            stdout = sys.stdout
-            with out.open("w", encoding="utf-8") as sink:
-                sys.stdout = sink
-                try:
-                    assert _run(["diagnose", str(recording), "--json", *output]) == 0
-                finally:
-                    sys.stdout = stdout
-            docs.append(json.loads(out.read_text(encoding="utf-8")))
-    return Rediagnosed(docs[0], docs[1], report, before, set(recording.parent.iterdir()))
+        patch.setenv("STATION_DIAGNOSIS_WORKERS", "1")
+        code, one = _run_json(["diagnose", str(recording), "--json", "--report", str(report)],
+                              folder / "one.json")
+        assert code == 0
+        before = set(recording.parent.iterdir())
+        patch.setenv("STATION_DIAGNOSIS_WORKERS", "2")
+        code, two = _run_json(["diagnose", str(recording), "--json", "--no-report"],
+                              folder / "two.json")
+        assert code == 0
+    return Rediagnosed(one, two, report, before, set(recording.parent.iterdir()))
 
 
 def test_diagnose_reads_the_recording_again_to_the_same_findings(
