@@ -153,6 +153,15 @@ def _nominal_fit(case: Case) -> tuple[Observations, Nominal]:
         return nominal_of(_timeline(case))
 
 
+@functools.cache
+def _grid_nominal(effect: Effect, seed: int) -> Nominal:
+    """The nominal fit of a case's first observations (``fit_nominal``, no settling pass),
+    which several tests start their searches from."""
+    obs, _ = _observed(effect, seed)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return fit_nominal(obs)
+
+
 def _sensor_truth(sensor: SensorParams) -> dict[str, list[float]]:
     """The model's sensor low-pass 1/(1 + a1·s + a2·s²) at the plant sensor's own."""
     w0 = 2 * math.pi * sensor.bandwidth_hz
@@ -212,7 +221,7 @@ def test_a_strong_flux_ripple_is_described_to_the_noise_only_with_the_higher_ord
     if not with_higher_orders:
         obs = replace(obs, beyond=None)
     with threadpool_limits(limits=1, user_api="blas"):
-        model = Model(ModelSpec(fit_nominal(obs).balanced.model.spec.chain,
+        model = Model(ModelSpec(chain_for(obs.metadata.gear_ratio),
                                 frozenset({Effect.FLUX_HARMONICS})), obs)
         result = fit(model, [_truth_start(model, case)], keep=1, max_nfev=100)
     per_dof = result.chi2 / result.dof
@@ -225,10 +234,10 @@ def test_a_strong_flux_ripple_is_described_to_the_noise_only_with_the_higher_ord
 def test_a_drifting_sensor_clock_is_found_from_the_recording_alone() -> None:
     """The periodogram of the segments' delays, its peaks and the sawtooth's phase give
     starts from which the fit lands on the plant's drift."""
-    obs, case = _observed(Effect.SENSOR_CLOCK_DRIFT, 24)
+    _, case = _observed(Effect.SENSOR_CLOCK_DRIFT, 24)
     truth = _plan(case).unit.sensor.clock_drift_ppm
     with threadpool_limits(limits=1, user_api="blas"):
-        nominal = fit_nominal(obs).balanced
+        nominal = _grid_nominal(Effect.SENSOR_CLOCK_DRIFT, 24).balanced
         model = Model(replace(nominal.model.spec,
                               effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})), nominal.model.obs)
         start = transplanted(model, nominal)
@@ -1330,10 +1339,9 @@ def test_a_model_judged_again_with_new_weights_is_polished_from_where_the_first_
     time finding the basin the first pass had found. Started from the first pass's fit,
     a reluctance spring's model (development seed 24) with the floor tripled needs no
     search and fits as well as the search does."""
-    obs, _ = _observed(Effect.RELUCTANCE_TORQUE, 24)
     effects = frozenset({Effect.RELUCTANCE_TORQUE})
     with threadpool_limits(limits=1, user_api="blas"):
-        nominal = fit_nominal(obs)
+        nominal = _grid_nominal(Effect.RELUCTANCE_TORQUE, 24)
         base = nominal.balanced
         first = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
                        nominal.free, None)
@@ -1359,9 +1367,8 @@ def test_a_short_polish_of_every_start_picks_the_ones_worth_polishing_in_full() 
     converged. On a drifting clock (development seed 24: its base and the group's
     estimates, six starts) that must end where polishing every start in full ends, for
     fewer evaluations."""
-    obs, _ = _observed(Effect.SENSOR_CLOCK_DRIFT, 24)
     with threadpool_limits(limits=1, user_api="blas"):
-        nominal = fit_nominal(obs)
+        nominal = _grid_nominal(Effect.SENSOR_CLOCK_DRIFT, 24)
         base = nominal.balanced
         model = Model(replace(base.model.spec, effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})),
                       base.model.obs)
@@ -1408,7 +1415,6 @@ def test_a_model_grown_from_a_drifting_clock_fits_the_clock_only_in_the_form_it_
     sensor's, not the other groups': both forms are fitted where the clock first enters
     a model, the better kept, and a model grown from that one fits the clock only in the
     form it chose (fitting both again doubled the cost of every larger model)."""
-    obs, _ = _observed(Effect.SENSOR_CLOCK_DRIFT, 24)
     clock = frozenset({Effect.SENSOR_CLOCK_DRIFT})
     forms: list[bool] = []
 
@@ -1419,7 +1425,7 @@ def test_a_model_grown_from_a_drifting_clock_fits_the_clock_only_in_the_form_it_
         return fit_spec(obs, spec, base, free, grid, others=others)
 
     with threadpool_limits(limits=1, user_api="blas"):
-        nominal = fit_nominal(obs)
+        nominal = _grid_nominal(Effect.SENSOR_CLOCK_DRIFT, 24)
         base = nominal.balanced
         search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
                         nominal.free, None)
@@ -1695,7 +1701,7 @@ def test_every_column_of_the_jacobian_is_what_the_residuals_themselves_change_by
     obs, _ = _observed(Effect.RELUCTANCE_TORQUE, seed)
     spec = ModelSpec(chain_for(obs.metadata.gear_ratio), effects=frozenset(Effect))
     with threadpool_limits(limits=1, user_api="blas"):
-        nominal = fit_nominal(obs).balanced
+        nominal = _grid_nominal(Effect.RELUCTANCE_TORQUE, seed).balanced
     model = Model(spec, nominal.model.obs)
     low, high = model.layout.bounds()
     span = np.where(np.isfinite(high - low), np.minimum(high - low, 1.0), 1.0)
@@ -1768,9 +1774,8 @@ def test_a_held_out_condition_never_fits_better_than_the_fit_that_had_it() -> No
     a one-step prediction from a fit short of its optimum (here two evaluations into a
     polish) would say it does, and made a clean belt's saturation group gain 1283 held
     out for 20 fitted."""
-    obs, _ = _observed(Effect.RELUCTANCE_TORQUE, 24)
     with threadpool_limits(limits=1, user_api="blas"):
-        base = fit_nominal(obs).balanced
+        base = _grid_nominal(Effect.RELUCTANCE_TORQUE, 24).balanced
         model = Model(replace(base.model.spec, effects=frozenset({Effect.RELUCTANCE_TORQUE})),
                       base.model.obs)
         early = polish(model, transplanted(model, base), max_nfev=2)
@@ -1787,10 +1792,9 @@ def test_a_gain_the_smaller_model_recovers_when_polished_from_the_larger_is_not_
     counts, the smaller model is polished from the larger's point and keeps the better
     fit (development trial friction@1672103899: five groups each gained 129 to 141 over
     friction). The nominal model is never refitted this way."""
-    obs, _ = _observed(Effect.RELUCTANCE_TORQUE, 24)
     effects = frozenset({Effect.RELUCTANCE_TORQUE})
     with threadpool_limits(limits=1, user_api="blas"):
-        nominal = fit_nominal(obs)
+        nominal = _grid_nominal(Effect.RELUCTANCE_TORQUE, 24)
         base = nominal.balanced
         nominal_candidate = Candidate(base.model.spec, base, held_out(base))
         search = Search(base.model.obs, nominal_candidate, nominal.free, None)
@@ -2004,10 +2008,9 @@ def test_a_model_whose_polish_ran_out_is_finished_before_larger_ones_grow_from_i
     for the rest again (benchmark trial flux_harmonics@1818367323, flux alone stopped at
     χ² 5,430 and each of the ten models of the next size ended at 1,700). A finished
     one is left as it is."""
-    obs, _ = _observed(Effect.FLUX_HARMONICS, 24)
     flux = frozenset({Effect.FLUX_HARMONICS})
     with threadpool_limits(limits=1, user_api="blas"):
-        nominal = fit_nominal(obs)
+        nominal = _grid_nominal(Effect.FLUX_HARMONICS, 24)
         base = nominal.balanced
         search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
                         nominal.free, None)
