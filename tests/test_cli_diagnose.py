@@ -6,6 +6,7 @@ every test here: its recording is then diagnosed again through ``diagnose``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from collections.abc import Iterator
@@ -48,13 +49,8 @@ def _run(args: list[str]) -> int:
 def _run_json(args: list[str], sink: Path) -> tuple[int, dict[str, Any]]:
     """The command's exit code and its ``--json`` document, stdout written to ``sink``:
     a module fixture has no capsys."""
-    stdout = sys.stdout
-    with sink.open("w", encoding="utf-8") as out:
-        sys.stdout = out
-        try:
-            code = _run(args)
-        finally:
-            sys.stdout = stdout
+    with sink.open("w", encoding="utf-8") as out, contextlib.redirect_stdout(out):
+        code = _run(args)
     return code, json.loads(sink.read_text(encoding="utf-8"))
 
 
