@@ -23,8 +23,9 @@ does a twin the diagnosis refuses).
 The trials within ±50 are counted apart and must not be given a wrong id (an
 ambiguity whose rivals hold a concealed effect is none: ``without_wrong_id``); the
 share over every trial is reported too.
-A control (a clean unit) must be given no id and no mismatch: a residual flagged on a
-clean unit is a false alarm, counted apart from the ids.
+A control (a healthy unit: its bearings' Coulomb friction up to CLI.md's limit and
+viscous drag, one class drawn just under the limit) must be given no id and no mismatch:
+a residual flagged on a healthy unit is a false alarm, counted apart from the ids.
 
 ``STATION_BENCH_DIAGNOSIS_PER_CLASS`` lowers the trial count for a quick look;
 the figures a note quotes come from the default.
@@ -66,10 +67,16 @@ PER_CLASS = 8
 NAMED_TARGET = 0.9
 """Each class named exactly (score 1) in at least this share of its trials."""
 CONTROL_TARGET = 0.95
-"""Clean units given no id in at least this share."""
+"""Healthy units (bearing friction up to CLI.md's limit, viscous drag) given no id in at
+least this share."""
+CONTROL_MISMATCH_TARGET = 0.9
+"""Healthy units left without a mismatch in at least this share."""
 UNNAMED_TARGET = 0.9
 """Physics outside the vocabulary given no id in at least this share."""
 TIME_TARGET_S = 30.0
+"""A recording diagnosed at worst within this long, on one core or on every core."""
+MEDIAN_TARGET_S = 12.0
+"""...and at the median within this long on one core: twice as fast as issue 90 found it."""
 ALONE_SAMPLE = 10
 """Recordings diagnosed again alone, on every core, for the time an engineer waits."""
 WALL_TARGET_MIN = 40.0
@@ -199,7 +206,7 @@ def measure() -> list[BenchRecord]:
         # on clean twins until their ringing poles were measured (README, item 2); the id
         # figure above cannot see it.
         BenchRecord("diagnosis_controls_without_mismatch", _share_without(controls, "mismatch"),
-                    "fraction", CONTROL_TARGET, Goal.AT_LEAST),
+                    "fraction", CONTROL_MISMATCH_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_out_of_vocabulary_without_id", _share_without(unnamed, "effects"),
                     "fraction", UNNAMED_TARGET, Goal.AT_LEAST),
         BenchRecord("diagnosis_named_with_better_held_out_fit",
@@ -218,7 +225,7 @@ def measure() -> list[BenchRecord]:
                     statistics.fmean(1.0 if same else 0.0 for _, same in alone),
                     "fraction", 1.0, Goal.AT_LEAST),
         BenchRecord("diagnosis_time_one_core_median",
-                    statistics.median(t.diagnose_s for t in trials), "s", TIME_TARGET_S,
+                    statistics.median(t.diagnose_s for t in trials), "s", MEDIAN_TARGET_S,
                     Goal.AT_MOST),
         BenchRecord("diagnosis_time_one_core_max", max(t.diagnose_s for t in trials), "s",
                     TIME_TARGET_S, Goal.AT_MOST),

@@ -80,6 +80,7 @@ from station.diagnosis.fit import (
     ParameterState,
     best_of,
     chosen_starts,
+    covariance,
     first_passes_shared,
     fit,
     held_out,
@@ -101,7 +102,7 @@ from station.diagnosis.groups import (
     scan_trials,
     separating_experiment,
 )
-from station.diagnosis.model import ChainKind, Model, ModelSpec, chain_for
+from station.diagnosis.model import HEALTHY_COULOMB, ChainKind, Model, ModelSpec, chain_for
 from station.diagnosis.observations import (
     ConditionKey,
     NotDiagnosable,
@@ -2097,6 +2098,48 @@ def settling_warnings(obs: Observations, untrusted: float | None) -> list[str]:
 
 
 # --------------------------------------------------------------------------- reporting
+def bearing_friction(result: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
+    """The friction every motor has, as the fitted model holds it (CLI.md's healthy unit):
+    Coulomb forward and reverse and the viscous drag, in % of the rated holding torque at
+    the motor shaft, each with its 1σ; and whether a level is beyond a healthy unit's.
+
+    The drag is the chain's damping seen as a mean torque (``Model.drag_coefficient``),
+    its σ propagated from the fit's covariance through a central difference of it."""
+    model = result.model
+    rated_A = model.rated_A
+    sl = model.layout.slices["friction_coulomb"]
+    scale = 100.0 * model.gear_ratio / rated_A  # load torque in Kt units → % at the motor
+    levels = result.params[sl] * scale
+    level_sigma = np.sqrt(np.maximum(np.diag(cov)[sl], 0.0)) * scale
+
+    def drag(p: NDArray[np.float64]) -> float:
+        return 100.0 * model.drag_coefficient(model.stages(p)) / rated_A
+
+    p = result.params
+    gradient = np.zeros(p.size)
+    for i in model.chain_index():
+        step = 1e-6 * max(1.0, abs(float(p[i])))
+        up, down = p.copy(), p.copy()
+        up[i] += step
+        down[i] -= step
+        gradient[i] = (drag(up) - drag(down)) / (2.0 * step)
+    fastest = float(np.max(np.abs(model.obs.omega))) / model.rotor_teeth
+    viscous = drag(p)
+    viscous_sigma = math.sqrt(max(float(gradient @ cov @ gradient), 0.0))
+    limit = 100.0 * HEALTHY_COULOMB
+    return {
+        "coulomb_forward_percent_of_rated_holding_torque": float(levels[0]),
+        "coulomb_forward_sigma_percent": float(level_sigma[0]),
+        "coulomb_reverse_percent_of_rated_holding_torque": float(levels[1]),
+        "coulomb_reverse_sigma_percent": float(level_sigma[1]),
+        "viscous_percent_per_rad_s": viscous,
+        "viscous_sigma_percent_per_rad_s": viscous_sigma,
+        "viscous_percent_at_fastest_speed": viscous * fastest,
+        "healthy_coulomb_limit_percent": limit,
+        "beyond_healthy": bool(np.any(levels > limit)),
+    }
+
+
 def nominal_parameters(result: Fit, judgements: Iterable[ParameterJudgement] = ()
                        ) -> dict[str, Any]:
     """What the nominal model found, in the units a motion engineer uses, each with its
@@ -2104,7 +2147,8 @@ def nominal_parameters(result: Fit, judgements: Iterable[ParameterJudgement] = (
     obs = result.model.obs
     model = result.model
     rated_A = obs.metadata.rated_current_mA / 1000.0
-    sig = sigmas(result)
+    cov = covariance(result)
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
     sl = model.layout.slices
     offsets = result.value("amp_offset_mA")
     gains = result.value("amp_gain_error")
@@ -2142,6 +2186,7 @@ def nominal_parameters(result: Fit, judgements: Iterable[ParameterJudgement] = (
             "offset_b_mA": float(sig[sl["amp_offset_mA"]][1]),
         },
         "load_angles": friction,
+        "friction": bearing_friction(result, cov),
         "chi2_per_dof": result.chi2 / result.dof,
         "states": {name: {"state": j.state.value, "value": j.value, "sigma": j.sigma,
                           "bound": j.bound, "chi2_gain": j.chi2_gain}

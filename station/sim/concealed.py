@@ -41,7 +41,7 @@ from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind, Trims
 from station.errors import StationError
 from station.paths import HOME_ENV
-from station.physics.params import BeltParams, UnitParams, UnnamedEffect
+from station.physics.params import BeltParams, FrictionParams, UnitParams, UnnamedEffect
 from station.physics.truth import unit_truth
 from station.recording import write_json_atomically
 from station.schedules import (
@@ -51,7 +51,7 @@ from station.schedules import (
     random_characterization,
 )
 from station.sim.inprocess import record_in_process, simulate_timeline
-from station.sim.population import draw_unit
+from station.sim.population import Bearings, draw_unit
 
 if TYPE_CHECKING:  # the simulator side of this module must not need the diagnosis
     from station.diagnosis.diagnose import Nominal
@@ -119,6 +119,7 @@ thresholds (10-30 for a group of a few parameters on these recordings of 700-150
 values)."""
 
 NO_EFFECT: Final = "none"
+AT_LIMIT_LABEL: Final = "bearings_at_limit"
 REFUSED: Final = "refused"
 """Key of a trial's document when the diagnosis refused the recording (its reason)."""
 UNNAMED_PREFIX: Final = "unnamed:"
@@ -130,11 +131,15 @@ class TrialClass:
 
     effects: frozenset[Effect] = frozenset()
     unnamed: frozenset[UnnamedEffect] = frozenset()
+    bearings_at_limit: bool = False
+    """A healthy unit whose bearings' Coulomb friction is just under CLI.md's limit."""
 
     @property
     def label(self) -> str:
         parts = sorted(e.value for e in self.effects) + sorted(
             UNNAMED_PREFIX + u.value for u in self.unnamed)
+        if self.bearings_at_limit:
+            parts.append(AT_LIMIT_LABEL)
         return "+".join(parts) or NO_EFFECT
 
     @property
@@ -162,13 +167,15 @@ PAIRS: Final = (
 
 CLASSES: Final = (
     TrialClass(),
+    TrialClass(bearings_at_limit=True),
     *(TrialClass(frozenset({e})) for e in Effect),
     *PAIRS,
     *(TrialClass(unnamed=frozenset({u})) for u in UnnamedEffect),
 )
 """Every vocabulary id alone, two-effect combinations, two effects no id describes
 (``UnnamedEffect``: a sensor whose element is not linear, a sensor mounted turned), and
-the negative controls."""
+the negative controls: healthy units, whose bearings have Coulomb friction up to CLI.md's
+limit, one class of them drawn just under it."""
 
 
 @dataclass(frozen=True)
@@ -223,17 +230,44 @@ def _center(rng: np.random.Generator, unit: UnitParams) -> Trims:
 
 
 def _schedule(rng: np.random.Generator, center: Trims,
-              below_hz: float = RANDOM_CHARACTERIZATION.electrical_hz[1]) -> Schedule:
-    """A characterization short enough, its speeds at most ``below_hz`` (``_ceiling``)."""
+              below_hz: float = RANDOM_CHARACTERIZATION.electrical_hz[1],
+              lowest_mA: int = RANDOM_CHARACTERIZATION.lowest_amplitude_mA) -> Schedule:
+    """A characterization short enough, its speeds at most ``below_hz`` (``_ceiling``), its
+    currents from ``lowest_mA`` (``_carrying_mA``)."""
     r = RANDOM_CHARACTERIZATION
     choices = int((below_hz - r.electrical_hz[0]) / HZ_RESOLUTION) + 1
     ranges = replace(r, electrical_hz=(r.electrical_hz[0], below_hz),
-                     speeds=(min(r.speeds[0], choices), min(r.speeds[1], choices)))
+                     speeds=(min(r.speeds[0], choices), min(r.speeds[1], choices)),
+                     lowest_amplitude_mA=max(r.lowest_amplitude_mA, lowest_mA))
     for _ in range(50):
         schedule = random_characterization(rng, center=center, ranges=ranges)
         if schedule.cycles * 1e-3 <= MAX_SCHEDULE_S:
             return schedule
     raise RuntimeError("no characterization short enough was drawn in 50 tries")
+
+
+def _friction_at_motor_Nm(unit: UnitParams, electrical_hz: float) -> float:
+    """Every friction of ``unit`` at ``electrical_hz``, the larger direction's Coulomb
+    levels plus the viscous drags, seen at the motor shaft."""
+    mech = unit.mechanics
+    motor_rad_s = 2.0 * math.pi * electrical_hz / unit.motor.rotor_teeth
+    n = unit.gear_ratio
+
+    def level(f: FrictionParams | None, speed: float) -> float:
+        return 0.0 if f is None else max(f.coulomb_pos_Nm, f.coulomb_neg_Nm) + f.viscous_Nms * speed
+
+    return (level(mech.rotor_bearing, motor_rad_s)
+            + n * sum(level(f, motor_rad_s * n) for f in (mech.load_bearing, mech.load_friction)))
+
+
+def _carrying_mA(unit: UnitParams, below_hz: float) -> int:
+    """The least current, in whole 10 mA below the rated, at which every friction of
+    ``unit`` at ``below_hz`` stays under ``FRICTION_HEADROOM`` of the holding torque: an
+    engineer characterizing a stiff unit does not drive it at currents it stalls at."""
+    rated_A = unit.rated_current_mA / 1000.0
+    share = _friction_at_motor_Nm(unit, below_hz) / unit.motor.holding_torque_Nm(rated_A)
+    wanted = share / FRICTION_HEADROOM * unit.rated_current_mA
+    return min(math.ceil(wanted / 10.0) * 10, unit.rated_current_mA - 100)
 
 
 def _friction_within_reach(unit: UnitParams, schedule: Schedule) -> UnitParams:
@@ -427,12 +461,14 @@ def plan_trial(case: Case) -> TrialPlan:
     load = LoadKind.DISK if rng.random() < 0.5 else LoadKind.BELT
     if not case.first_draw:
         load = _load_for(case, load)
-    unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed)
+    unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed,
+                     bearings=Bearings.AT_LIMIT if case.cls.bearings_at_limit
+                     else Bearings.HEALTHY)
     center = _center(rng, unit)
     drawn = unit
     below_hz = RANDOM_CHARACTERIZATION.electrical_hz[1]
     for _ in range(SCHEDULE_DRAWS):
-        schedule = _schedule(rng, center, below_hz)
+        schedule = _schedule(rng, center, below_hz, _carrying_mA(drawn, below_hz))
         placed = drawn if case.first_draw else _coupling_within_reach(drawn, schedule, case.seed)
         unit = _friction_within_reach(placed, schedule)
         # A first run at the widest range: the range a careful engineer would then set.

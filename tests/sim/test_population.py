@@ -21,6 +21,7 @@ from station.recipes import load_recipe
 from station.serials import parse_serial
 from station.sim.population import (
     LINE_SHARES,
+    Bearings,
     LineKind,
     belt_mode_motor_held_hz,
     draw_line_unit,
@@ -76,9 +77,12 @@ def test_motor_amplifier_and_sensor_span_their_wide_ranges() -> None:
         disk = unit.mechanics.disk
         assert disk is not None and _within(disk.inertia_kgm2, 5e-6, 1e-4)
         assert _within(sensor.radius_m, 0.02, 0.12)
-        # Viscous drag only: Coulomb friction is the vocabulary's `friction`, not nominal.
+        # A healthy unit's bearings (CLI.md): Coulomb friction up to 10 % of the holding
+        # torque, each direction its own, and viscous drag.
         bearing = unit.mechanics.rotor_bearing
-        assert bearing.coulomb_pos_Nm == bearing.coulomb_neg_Nm == 0.0
+        holding = unit.motor.holding_torque_Nm(1.0)
+        for level in (bearing.coulomb_pos_Nm, bearing.coulomb_neg_Nm):
+            assert _within(level / holding, 0.01, 0.10)
         assert _within(bearing.viscous_Nms, 0.001, 0.004)
     # Wide means wide: the draws reach towards both ends.
     kts = [u.motor.kt_Nm_per_A for u in units]
@@ -87,6 +91,25 @@ def test_motor_amplifier_and_sensor_span_their_wide_ranges() -> None:
     assert min(inertias) < 1e-5 and max(inertias) > 5e-5
     assert draw_unit(3, load=LoadKind.DISK, effects=NONE,
                      noise_density_ug=0.0).sensor.noise_density_ug == 0.0
+    forward = [u.mechanics.rotor_bearing.coulomb_pos_Nm / u.motor.holding_torque_Nm(1.0)
+               for u in units]
+    reverse = [u.mechanics.rotor_bearing.coulomb_neg_Nm / u.motor.holding_torque_Nm(1.0)
+               for u in units]
+    assert min(forward) < 0.03 and max(forward) > 0.08
+    assert any(abs(f - r) > 0.03 for f, r in zip(forward, reverse, strict=True))
+
+
+def test_units_at_the_healthy_limit_have_bearings_just_under_it_and_nothing_else_changes(
+) -> None:
+    for seed in SEEDS[:8]:
+        plain = draw_unit(seed, load=LoadKind.DISK, effects=NONE)
+        limit = draw_unit(seed, load=LoadKind.DISK, effects=NONE, bearings=Bearings.AT_LIMIT)
+        holding = limit.motor.holding_torque_Nm(1.0)
+        bearing = limit.mechanics.rotor_bearing
+        for level in (bearing.coulomb_pos_Nm, bearing.coulomb_neg_Nm):
+            assert _within(level / holding, 0.09, 0.10)
+        assert limit.motor == plain.motor and limit.sensor == plain.sensor
+        assert bearing.viscous_Nms == plain.mechanics.rotor_bearing.viscous_Nms
 
 
 def test_belts_span_gear_ratio_mode_inertia_and_damping() -> None:
@@ -109,9 +132,16 @@ def test_belts_span_gear_ratio_mode_inertia_and_damping() -> None:
         seen = belt.load_inertia_kgm2 * belt.reduction**2 / unit.motor.rotor_inertia_kgm2
         assert _within(seen, 0.3, 30.0)
         assert _within(unit.sensor.radius_m, 0.05, 0.15)
+        # The bearings' Coulomb friction shared between motor and load, up to 10 % of the
+        # holding torque at the motor shaft in all (a load torque is ·n there).
         bearing = unit.mechanics.load_bearing
-        assert bearing is not None and bearing.coulomb_pos_Nm == bearing.coulomb_neg_Nm == 0.0
-        assert bearing.viscous_Nms > 0.0
+        rotor = unit.mechanics.rotor_bearing
+        assert bearing is not None and bearing.viscous_Nms > 0.0
+        holding = unit.motor.holding_torque_Nm(1.0)
+        for at_rotor, at_load in ((rotor.coulomb_pos_Nm, bearing.coulomb_pos_Nm),
+                                  (rotor.coulomb_neg_Nm, bearing.coulomb_neg_Nm)):
+            assert _within((at_rotor + at_load * unit.gear_ratio) / holding, 0.01, 0.10)
+            assert at_load * unit.gear_ratio <= 0.6 * (at_rotor + at_load * unit.gear_ratio)
     # Log-uniform: as many modes in each half of the log range.
     below = sum(f < math.sqrt(30.0 * 500.0) for f in modes)
     assert 0.35 * len(modes) < below < 0.65 * len(modes)
@@ -153,7 +183,8 @@ def test_every_effect_spans_its_range() -> None:
         friction = mech.load_friction
         assert friction is not None
         holding_load = holding / unit.gear_ratio
-        assert _within(friction.coulomb_pos_Nm / holding_load, 0.1, 0.4)
+        # Beyond a healthy unit's, from 1.5 times CLI.md's limit.
+        assert _within(friction.coulomb_pos_Nm / holding_load, 0.15, 0.3)
         assert _within(friction.coulomb_neg_Nm / friction.coulomb_pos_Nm, 0.7, 1.3)
         load_speed = 2 * math.pi * 20.0 / motor.rotor_teeth * unit.gear_ratio
         assert _within(friction.viscous_Nms * load_speed / holding_load, 0.02, 0.1)
@@ -291,7 +322,8 @@ LINE = [draw_line_unit(seed) for seed in range(400)]
 def test_a_line_unit_is_the_same_for_the_same_seed_and_is_that_seeds_population_unit() -> None:
     for line in LINE[:20]:
         assert draw_line_unit(line.seed) == line
-        drawn = draw_unit(line.seed, load=line.unit.load, effects=line.unit.effects)
+        drawn = draw_unit(line.seed, load=line.unit.load, effects=line.unit.effects,
+                          bearings=Bearings.VISCOUS_ONLY)
         # The line changes the amplifier of a rough or untrimmable unit, nothing else.
         assert replace(line.unit, amplifier=drawn.amplifier) == drawn
         if line.kind is LineKind.ORDINARY:
