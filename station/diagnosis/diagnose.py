@@ -681,7 +681,10 @@ def _from_previous(model: Model, previous: Nominal, run: Mapper) -> Fit:
 def _floored(model: Model, first: Fit, run: Mapper) -> tuple[Fit, Fit]:
     """The free and the balanced fit, weighted with the model floor magnified where
     ``first``'s chain has its modes."""
-    floored = model.obs.with_floor(model.magnification(first.params))
+    # The floor's friction needs its levels, which only the torque balance gives: solved
+    # at the free fit's point with the balance on.
+    balanced = Model(replace(model.spec, dc_balance=True), model.obs)
+    floored = model.obs.with_floor(balanced.floor(solve_linear(balanced, first.params)))
     free = fit(Model(model.spec, floored), [first.params], keep=1, max_nfev=80)
     return free, _balanced(free, floored, run=run)
 
@@ -1983,7 +1986,7 @@ def _reweighted(nominal: Nominal, chosen: Candidate, run: Mapper = map) -> Nomin
     of the recording must then be judged again with the better weights.
     """
     obs = nominal.balanced.model.obs
-    floored = obs.with_floor(chosen.fit.model.magnification(chosen.fit.params))
+    floored = obs.with_floor(chosen.fit.model.floor(chosen.fit.params))
     change = np.abs(np.log(floored.sigma / obs.sigma))
     if float(np.quantile(change, 0.99)) < REWEIGHT_CHANGE:
         return None
@@ -2098,6 +2101,32 @@ def settling_warnings(obs: Observations, untrusted: float | None) -> list[str]:
 
 
 # --------------------------------------------------------------------------- reporting
+LIMITED_READINGS = {
+    "sensor_delay_ms": ("sensor_a1_ms",),
+    "sensor_bandwidth_hz": ("sensor_a1_ms", "sensor_a2_ms2"),
+    "rotor_damping_ratio": ("rotor_damping_ratio",),
+    "rotor_natural_hz_at_rated_current": ("log_rotor_hz",),
+}
+"""The nominal readings and the parameters they rest on: one resting on a limit (or pushed
+past it) is reported as null beside its state, never as a number (a dead-time recording's
+sensor read 82,401,615 Hz, another's 400.0000002 Hz, ICD's floor)."""
+
+
+def sensor_bandwidth_hz(a1_ms: float, a2_ms2: float) -> float | None:
+    """Where |1/(1 + a1·s + a2·s²)|² falls to one half, Hz (None for no low-pass at all).
+
+    With a2 at zero the low-pass is first order and its bandwidth is 1/(2π·a1): the old
+    reading, 1/(2π·√a2), ran to 82 MHz there. In ω² = u: a2²u² + (a1² − 2a2)u − 1 = 0."""
+    if a1_ms <= 0.0 and a2_ms2 <= 0.0:
+        return None
+    b = a1_ms * a1_ms - 2.0 * a2_ms2
+    if a2_ms2 <= 0.0:
+        u = 1.0 / b
+    else:
+        u = (-b + math.sqrt(b * b + 4.0 * a2_ms2 * a2_ms2)) / (2.0 * a2_ms2 * a2_ms2)
+    return 1e3 * math.sqrt(u) / (2.0 * math.pi)
+
+
 def bearing_friction(result: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
     """The friction every motor has, as the fitted model holds it (CLI.md's healthy unit):
     Coulomb forward and reverse and the viscous drag, in % of the rated holding torque at
@@ -2173,7 +2202,7 @@ def nominal_parameters(result: Fit, judgements: Iterable[ParameterJudgement] = (
         "rotor_damping_ratio_sigma": float(sig[sl["rotor_damping_ratio"]][0]),
         "sensor_delay_ms": a1,
         "sensor_delay_ms_sigma": float(sig[sl["sensor_a1_ms"]][0]),
-        "sensor_bandwidth_hz": (1e3 / (2 * math.pi * math.sqrt(a2))) if a2 > 0 else None,
+        "sensor_bandwidth_hz": sensor_bandwidth_hz(a1, a2),
         "optimal_trims": {
             "offset_a_mA": -float(offsets[0]),
             "offset_b_mA": -float(offsets[1]),
@@ -2192,6 +2221,10 @@ def nominal_parameters(result: Fit, judgements: Iterable[ParameterJudgement] = (
                           "bound": j.bound, "chi2_gain": j.chi2_gain}
                    for name, j in states.items()},
     }
+    # A value resting on its limit is the limit, not a measurement: said in ``states``.
+    for key, names in LIMITED_READINGS.items():
+        if key in out and any(n in states for n in names):
+            out[key] = None
     if model.spec.chain is ChainKind.BELT:
         hz = math.exp(result.scalar("log_belt_hz"))
         ratio = math.exp(result.scalar("log_load_ratio"))

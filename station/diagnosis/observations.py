@@ -230,10 +230,9 @@ class Observations:
         return replace(self, mechanical=np.array(
             [mechanical_phasor(s, teeth, per_revolution) for s in self.segments]))
 
-    def with_floor(self, magnification: NDArray[np.float64]) -> Observations:
-        """The same observations with the model floor scaled per phasor by how much the
-        chain magnifies a torque error into acceleration there (1 far from any mode)."""
-        floor = MODEL_FLOOR * np.abs(self.phasors) * magnification
+    def with_floor(self, floor: NDArray[np.float64]) -> Observations:
+        """The same observations with a model's own floor (m/s² per phasor, ``Model.floor``)
+        added to the noise."""
         return replace(self, sigma=np.sqrt(self.noise**2 + floor**2))
 
     @property

@@ -1353,8 +1353,7 @@ def test_a_model_judged_again_with_new_weights_is_polished_from_where_the_first_
         first = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
                        nominal.free, None)
         earlier = first.get(effects)
-        floored = base.model.obs.with_floor(
-            3.0 * earlier.fit.model.magnification(earlier.fit.params))
+        floored = base.model.obs.with_floor(3.0 * earlier.fit.model.floor(earlier.fit.params))
         again = fit(Model(base.model.spec, floored), [base.params], keep=1)
         searched = fit_spec(floored, earlier.spec, again, nominal.free)
         calls: list[object] = []
