@@ -186,6 +186,17 @@ class Case:
     """Plan as trials were drawn before couplings were put within the schedule's reach
     (``_coupling_within_reach``; benchmarks up to 2026-11-28): the trials found then and
     kept in tests stay the recordings they were."""
+    paper_bearings: bool = False
+    """Plan as trials were drawn before every unit had a healthy unit's bearings (issue 90):
+    viscous drag only (``Bearings.VISCOUS_ONLY``), and the schedule's currents not raised
+    for a friction they must carry; the development plants that tests were written on stay
+    the plants they were."""
+
+    @property
+    def bearings(self) -> Bearings:
+        if self.paper_bearings:
+            return Bearings.VISCOUS_ONLY
+        return Bearings.AT_LIMIT if self.cls.bearings_at_limit else Bearings.HEALTHY
 
     @property
     def label(self) -> str:
@@ -462,13 +473,13 @@ def plan_trial(case: Case) -> TrialPlan:
     if not case.first_draw:
         load = _load_for(case, load)
     unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed,
-                     bearings=Bearings.AT_LIMIT if case.cls.bearings_at_limit
-                     else Bearings.HEALTHY)
+                     bearings=case.bearings)
     center = _center(rng, unit)
     drawn = unit
     below_hz = RANDOM_CHARACTERIZATION.electrical_hz[1]
     for _ in range(SCHEDULE_DRAWS):
-        schedule = _schedule(rng, center, below_hz, _carrying_mA(drawn, below_hz))
+        lowest = 0 if case.paper_bearings else _carrying_mA(drawn, below_hz)
+        schedule = _schedule(rng, center, below_hz, lowest)
         placed = drawn if case.first_draw else _coupling_within_reach(drawn, schedule, case.seed)
         unit = _friction_within_reach(placed, schedule)
         # A first run at the widest range: the range a careful engineer would then set.
@@ -567,7 +578,8 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
     parts = []
     for effects, unnamed in twins:
         twin = _kept_as_planned(
-            draw_unit(plan.case.seed, load=plan.unit.load, effects=effects, unnamed=unnamed),
+            draw_unit(plan.case.seed, load=plan.unit.load, effects=effects, unnamed=unnamed,
+                      bearings=plan.case.bearings),
             plan.unit)
         if Effect.LOAD_RESONANCE in concealed.effects - effects:
             twin = nominal_equivalent(twin, plan.unit)

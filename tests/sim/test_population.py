@@ -20,6 +20,7 @@ from station.physics.truth import unit_truth
 from station.recipes import load_recipe
 from station.serials import parse_serial
 from station.sim.population import (
+    BELT_LOAD_SHARE,
     LINE_SHARES,
     Bearings,
     LineKind,
@@ -141,7 +142,8 @@ def test_belts_span_gear_ratio_mode_inertia_and_damping() -> None:
         for at_rotor, at_load in ((rotor.coulomb_pos_Nm, bearing.coulomb_pos_Nm),
                                   (rotor.coulomb_neg_Nm, bearing.coulomb_neg_Nm)):
             assert _within((at_rotor + at_load * unit.gear_ratio) / holding, 0.01, 0.10)
-            assert at_load * unit.gear_ratio <= 0.6 * (at_rotor + at_load * unit.gear_ratio)
+            share = at_load * unit.gear_ratio / (at_rotor + at_load * unit.gear_ratio)
+            assert _within(share, *BELT_LOAD_SHARE)
     # Log-uniform: as many modes in each half of the log range.
     below = sum(f < math.sqrt(30.0 * 500.0) for f in modes)
     assert 0.35 * len(modes) < below < 0.65 * len(modes)
