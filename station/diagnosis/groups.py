@@ -24,6 +24,7 @@ from station.diagnosis.model import (
     DETENT_ORDERS,
     DISTORTION_ORDERS,
     FLUX_ORDERS,
+    HEALTHY_COULOMB,
     MIN_CLOCK_PPM,
     ChainKind,
     Model,
@@ -454,7 +455,9 @@ def _friction(fit: Fit, sig: NDArray[np.float64]) -> dict[str, Any]:
         "coulomb_reverse_percent_of_rated_holding_torque": float(v[1]) * scale,
         "coulomb_reverse_sigma_percent": float(s[1]) * scale,
         "smoothing_relative_to_slowest_speed": math.exp(fit.scalar("log_friction_smoothing")),
-        "note": "viscous friction is in the chain's damping (nominal)",
+        "healthy_coulomb_limit_percent": 100.0 * HEALTHY_COULOMB,
+        "note": ("the whole Coulomb levels, the bearings' healthy share among them; viscous "
+                 "friction is in the chain's damping (nominal)"),
     }
     return out
 
@@ -530,6 +533,45 @@ GROUP_PARAMETERS: dict[Effect, Callable[[Fit, NDArray[np.float64]], dict[str, An
 
 
 # --------------------------------------------------------------------------- separating
+HEALTHY_PART: dict[Effect, str] = {
+    Effect.FRICTION: (
+        "Kept by the nominal model: every motor's bearings have Coulomb friction (CLI.md: up "
+        "to 10 % of the rated holding torque, either direction) and viscous drag, fitted "
+        "and reported with σ under nominal.friction. Named only past a guarded ceiling "
+        "(model.HEALTHY_COULOMB_GUARD) or as another form."),
+    Effect.LOAD_RESONANCE: (
+        "Kept by the nominal model: a belt the metadata declares is nominal physics, its "
+        "mode fitted and reported. Named for a compliance the fixture does not declare."),
+    Effect.SENSOR_CLOCK_DRIFT: (
+        "Kept by the nominal model: a clock within a few ppm of SYNC's is the sensor's "
+        "constant delay (model.MIN_CLOCK_PPM, the group's null band); every crystal drifts "
+        "that much. Named beyond it."),
+    Effect.CURRENT_LOOP_LAG: (
+        "Kept by the nominal model in part: a loop far faster than the recorded orders is a "
+        "delay the sensor's own low-pass stands for. Named where the time constants show "
+        "what no sensor delay can hide."),
+    Effect.FLUX_HARMONICS: (
+        "Nothing kept: a real motor has some, but what a 1 A characterization resolves is "
+        "ripple the customer feels and the compensation table removes, so it is named."),
+    Effect.DETENT_TORQUE: (
+        "Nothing kept: every hybrid stepper cogs a little, but cogging the recording "
+        "resolves is ripple no trim removes, so it is named with its size for QA to judge."),
+    Effect.RELUCTANCE_TORQUE: (
+        "Nothing kept: named when the torque's growth with I² is resolved."),
+    Effect.CURRENT_DISTORTION: (
+        "Nothing kept: every drive's waveform is a little off, but what the recording "
+        "resolves moves the optimal trims and the ripple, so it is named."),
+    Effect.MAGNETIC_SATURATION: (
+        "Nothing kept: every motor saturates somewhat near rated current, but named only "
+        "when Kt's fall over the recorded currents is resolved."),
+    Effect.ROTOR_ECCENTRICITY: (
+        "Nothing kept: some runout is in every rotor, but named only when the "
+        "once-per-revolution terms beat themselves fitted at wrong angles."),
+}
+"""What a healthy unit always has some of, for each id, and what was decided: kept by the
+nominal model (fitted, reported, never named) or named whenever the data resolve it."""
+
+
 SEPARATING_EXPERIMENTS: dict[frozenset[Effect], str] = {
     frozenset({Effect.FLUX_HARMONICS, Effect.CURRENT_DISTORTION}): (
         "record the phase currents (drive current sense or a current probe) while running: "

@@ -1,6 +1,6 @@
 """The issue's acceptance test: name concealed effects on trials nobody tuned on.
 
-Every class of ``station.sim.concealed`` (a clean unit, each vocabulary id,
+Every class of ``station.sim.concealed`` (a healthy unit, one at the limit, each id,
 two-effect combinations, physics no id describes) is drawn once on a seed
 above ``TRIAL_SEED_FLOOR``, where nobody developed: a disk or belt unit over
 wide ranges, a characterization schedule as someone else might write it,
@@ -63,7 +63,7 @@ from station.sim.concealed import run_trial as run
 from station.sim.inprocess import simulate_timeline
 from station.sim.population import draw_unit
 
-pytestmark = pytest.mark.slow  # fifteen trials recorded and diagnosed: about four minutes
+pytestmark = pytest.mark.slow  # twenty trials recorded and diagnosed: about five minutes
 
 SMOKE_SCORE = 0.5
 """Mean score over one trial per class below which the diagnosis has surely regressed.

@@ -841,7 +841,10 @@ def test_friction_responds_only_in_segments_where_it_has_a_slope_and_there_as_ma
     """Segments whose load never nears a stop have no friction slope and are skipped in
     the response to a change of motion (the step's basis, a Jacobian's stacked points):
     the others must come out as the whole product makes them, to the bit."""
-    fitted = _concealed_friction().larger.fit
+    # Seed 26's friction (10 and 11 %, within a healthy unit's) stops its load in some
+    # segments, which seed 22's never does.
+    fitted = _added(_case(TrialClass(frozenset({Effect.FRICTION})), 26), Effect.FRICTION
+                    ).larger.fit
     model = fitted.model
     slope = model.motion(fitted.params).friction_slope.copy()
     slope[::2] = 0.0  # every other segment settled, whatever this fit's were
