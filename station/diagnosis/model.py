@@ -366,8 +366,9 @@ FRICTION_SMOOTHING_MAX = 0.1
 """Coulomb friction's smoothing, at most this fraction of the slowest mean load speed.
 
 Coulomb friction is a torque that does not change with speed once the load moves. At this
-ceiling its smoothed sign has settled at every hold (tanh 10), so the group cannot be a
-drag that grows with speed and damps the ripple at low speeds, which any chain the
+ceiling its smoothed sign has settled at every hold (tanh 10), so the smoothing (the
+nominal model's since issue 90, the group's before) cannot make a drag that grows with
+speed and damps the ripple at low speeds, which any chain the
 nominal model got slightly wrong could use (a clean belt unit was named friction at
 0.8 % of holding torque, smoothed over half its top speed). Below it the smoothing shows
 only where the load's swing nearly stops it; where it never does, the data do not fix
