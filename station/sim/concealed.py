@@ -257,18 +257,22 @@ def _schedule(rng: np.random.Generator, center: Trims,
     raise RuntimeError("no characterization short enough was drawn in 50 tries")
 
 
+def _taken_Nm(friction: FrictionParams | None, rad_s: float) -> float:
+    """What ``friction`` takes at ``rad_s`` on its own shaft, the larger direction's Coulomb
+    level plus the viscous drag (nothing where there is none)."""
+    if friction is None:
+        return 0.0
+    return max(friction.coulomb_pos_Nm, friction.coulomb_neg_Nm) + friction.viscous_Nms * rad_s
+
+
 def _friction_at_motor_Nm(unit: UnitParams, electrical_hz: float) -> float:
-    """Every friction of ``unit`` at ``electrical_hz``, the larger direction's Coulomb
-    levels plus the viscous drags, seen at the motor shaft."""
+    """Every friction of ``unit`` at ``electrical_hz``, seen at the motor shaft."""
     mech = unit.mechanics
     motor_rad_s = 2.0 * math.pi * electrical_hz / unit.motor.rotor_teeth
     n = unit.gear_ratio
-
-    def level(f: FrictionParams | None, speed: float) -> float:
-        return 0.0 if f is None else max(f.coulomb_pos_Nm, f.coulomb_neg_Nm) + f.viscous_Nms * speed
-
-    return (level(mech.rotor_bearing, motor_rad_s)
-            + n * sum(level(f, motor_rad_s * n) for f in (mech.load_bearing, mech.load_friction)))
+    return (_taken_Nm(mech.rotor_bearing, motor_rad_s)
+            + n * sum(_taken_Nm(f, motor_rad_s * n) for f in (mech.load_bearing,
+                                                             mech.load_friction)))
 
 
 def _carrying_mA(unit: UnitParams, below_hz: float) -> int:
@@ -291,8 +295,7 @@ def _friction_within_reach(unit: UnitParams, schedule: Schedule) -> UnitParams:
     for hold in (h for h in schedule.holds if h.velocity):
         electrical_hz = abs(hold.velocity) / (4.0 * schedule.microsteps)
         load_rad_s = 2.0 * math.pi * electrical_hz / unit.motor.rotor_teeth * unit.gear_ratio
-        needed = (max(friction.coulomb_pos_Nm, friction.coulomb_neg_Nm)
-                  + friction.viscous_Nms * load_rad_s)
+        needed = _taken_Nm(friction, load_rad_s)
         capacity = unit.motor.holding_torque_Nm(hold.amplitude_mA / 1000.0) / unit.gear_ratio
         scale = min(scale, FRICTION_HEADROOM * capacity / needed)
     if scale >= 1.0:
