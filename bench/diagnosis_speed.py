@@ -21,9 +21,12 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from bench.record import BenchRecord, Goal
-from station.diagnosis.diagnose import GRID_EXACT, GRID_SHARED, REGRID_KEEP, nominal_starts
+from station.diagnosis.candidates import REGRID_KEEP
+from station.diagnosis.effects import grid_shared
 from station.diagnosis.fit import first_passes_shared, rank_passed, screen
-from station.diagnosis.model import ChainKind, Model, ModelSpec
+from station.diagnosis.layout import ChainKind, ModelSpec
+from station.diagnosis.model import Model
+from station.diagnosis.nominal import GRID_EXACT, nominal_starts
 from station.diagnosis.observations import Observations, observe
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, fresh_seeds, plan_trial
 from station.sim.inprocess import simulate_timeline
@@ -46,8 +49,9 @@ def _belt_observations() -> Observations:
 def measure() -> list[BenchRecord]:
     obs = _belt_observations()
     spec = ModelSpec(ChainKind.BELT)
-    effects = sorted(GRID_SHARED)
-    union = Model(replace(spec, effects=GRID_SHARED), obs)
+    sharing = grid_shared()
+    effects = sorted(sharing)
+    union = Model(replace(spec, effects=sharing), obs)
     models = [Model(spec.with_effect(e), obs) for e in effects]
     own_s, shared_s = [], []
     with threadpool_limits(limits=1, user_api="blas"):

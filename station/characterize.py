@@ -19,7 +19,8 @@ from typing import Any
 from station import __version__
 from station.analysis.reader import read_recording
 from station.benches import open_bench
-from station.diagnosis.diagnose import Diagnosis, diagnose
+from station.diagnosis.diagnose import diagnose
+from station.diagnosis.results import Diagnosis
 from station.errors import DeviceStateError, InputError
 from station.procedure import check_identity
 from station.recipes import DEFAULT_RECIPE, load_recipe

@@ -44,7 +44,8 @@ from numpy.typing import NDArray
 from scipy.optimize import OptimizeResult, least_squares, lsq_linear
 
 from station.core import Mapper
-from station.diagnosis.model import BlockKind, Model
+from station.diagnosis.layout import BlockKind
+from station.diagnosis.model import Model
 
 _MAX_NFEV = 40
 _FTOL = 1e-6
@@ -535,7 +536,7 @@ def _short_polishes(model: Model, chosen: list[NDArray[np.float64]], finalists: 
     has nothing left to gain and keeps its place. Without ``heat`` every start has the
     whole short polish: a field of chains spread over a grid, whose χ² after three
     evaluations says how near the base a chain starts, not which basin it is in
-    (``groups.GROUP_TOURNAMENT``).
+    (``EffectTerms.tournament``).
     """
     if not heat or len(chosen) <= max(HEAT_FIELD, finalists):
         return sorted(polish_all(model, chosen, TOURNAMENT_NFEV, run), key=lambda f: f.chi2)

@@ -42,13 +42,19 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields, replace
-from enum import StrEnum
 from typing import Any, Generic, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from station.core import GAIN_UNITY, Effect
+from station.diagnosis import effects
+from station.diagnosis.effects.current_distortion import DISTORTION_ORDERS, dead_time_knee_A
+from station.diagnosis.effects.detent_torque import DETENT_ORDERS
+from station.diagnosis.effects.flux_harmonics import FLUX_ORDERS
+from station.diagnosis.effects.friction import FLOOR_SMOOTHING, FRICTION_TURN_SHARE
+from station.diagnosis.effects.magnetic_saturation import saturation_shapes, saturation_slopes
+from station.diagnosis.layout import Block, BlockKind, ChainKind, Layout, ModelSpec
 from station.diagnosis.observations import MODEL_FLOOR, Observations
 
 GRID = 48
@@ -70,16 +76,12 @@ NEAR_DONE = 1e-14
 """Newton–Schulz passes at most, the error of the start beyond which the matrix is
 inverted afresh instead, and the error at which refining stops (``Model.step``):
 a difference step leaves an error near 1e-6, gone to rounding after two passes."""
+DEAD_TIME_OVERSAMPLE = 4
+"""How much finer than the grid a dead time's turns are formed before they are cut to the
+grid's orders (``Model.dead_time_turns``)."""
 TRIM_LAG_SOFTEST = 0.05
 """Below this spring (|mean ∂torque/∂θe| per A of current, i.e. cos ρ near a load angle of
 ±87°) a segment is given no slip: the step would be its torque over almost nothing."""
-
-FLUX_ORDERS = (2, 3, 4, 5)
-"""Harmonics j of the mutual inductances L1f, L2f (j = 1 is the fundamental)."""
-DISTORTION_ORDERS = (2, 3, 4, 5)
-"""Harmonics h of each phase current's waveform."""
-DETENT_ORDERS = (4, 8)
-"""Cogging repeats every full step: four times per electrical period, and its multiples."""
 
 QUARTER = math.pi / 2.0
 
@@ -90,115 +92,6 @@ SENSOR_MIN_BANDWIDTH = 0.4
 """Of the SYNC rate: what ICD.md §3 promises of the sensor's own bandwidth."""
 SENSOR_MAX_DAMPING = 1.5
 """Of the sensor's low-pass (a first-order one is a heavily damped second-order one)."""
-
-
-class ChainKind(StrEnum):
-    """The mechanics between rotor and sensor that the recording's fixture declares."""
-
-    RIGID = "rigid"  # sensor on a disk on the shaft (gear ratio 1)
-    BELT = "belt"  # sensor on a load driven through a belt (gear ratio ≠ 1)
-
-
-class BlockKind(StrEnum):
-    LINEAR = "linear"  # solved by least squares at every start: the error is (nearly) linear
-    ANGLES = "angles"  # one per condition, each touching only its condition's rows
-    NONLINEAR = "nonlinear"
-
-
-@dataclass(frozen=True)
-class Block:
-    """A named run of parameters: where it sits, start values, bounds, how it is solved."""
-
-    name: str
-    size: int
-    start: float | tuple[float, ...]
-    low: float = -np.inf
-    high: float = np.inf
-    kind: BlockKind = BlockKind.NONLINEAR
-    rejects: tuple[int, ...] = ()
-    """Bounds (−1 low, +1 high) a fit may not rest on and still be the group's physics:
-    a clock 5000 ppm off or a current loop twenty periods late is something else the
-    group stands in for. (Friction's smoothing has none: its ceiling is still Coulomb
-    friction, ``FRICTION_SMOOTHING_MAX``.)"""
-    null_band: float = 0.0
-    """Values nearer zero than this leave no physics of the group's own: a clock keeping
-    SYNC's rate to a few ppm is the sensor's constant delay, and a fit that ends there
-    holds a fixed sub-sample phase that stands in for something else (``MIN_CLOCK_PPM``)."""
-
-
-@dataclass
-class Layout:
-    """Where each named block sits in the flat parameter vector."""
-
-    blocks: list[Block] = field(default_factory=list)
-    slices: dict[str, slice] = field(default_factory=dict)
-
-    def add(self, block: Block) -> None:
-        begin = self.size
-        self.blocks.append(block)
-        self.slices[block.name] = slice(begin, begin + block.size)
-
-    @property
-    def size(self) -> int:
-        return sum(b.size for b in self.blocks)
-
-    def has(self, name: str) -> bool:
-        return name in self.slices
-
-    def block(self, name: str) -> Block:
-        return next(b for b in self.blocks if b.name == name)
-
-    def start(self) -> NDArray[np.float64]:
-        out = np.empty(self.size)
-        for b in self.blocks:
-            out[self.slices[b.name]] = b.start
-        return out
-
-    def bounds(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        low = np.empty(self.size)
-        high = np.empty(self.size)
-        for b in self.blocks:
-            low[self.slices[b.name]] = b.low
-            high[self.slices[b.name]] = b.high
-        return low, high
-
-    def indices(self, kind: BlockKind) -> NDArray[np.intp]:
-        parts = [np.arange(self.slices[b.name].start, self.slices[b.name].stop)
-                 for b in self.blocks if b.kind is kind]
-        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.intp)
-
-
-@dataclass(frozen=True)
-class ModelSpec:
-    """Which chain, which term groups, and the sensor clock's form when it drifts."""
-
-    chain: ChainKind
-    effects: frozenset[Effect] = frozenset()
-    clock_wraps: bool = True  # a drifting sensor holds its latest sample for each SYNC
-    # Whether each segment's mean torque must balance its drag. Without it the load angles
-    # are free nuisances: a start that nothing unmodelled can bend.
-    dc_balance: bool = True
-    # The sensor's transfer bends (a + c2·a²/FS + c3·a³/FS²): physics no id describes,
-    # modelled so that it can be told from the ids it would otherwise be taken for.
-    sensor_bend: bool = False
-
-    def with_effect(self, effect: Effect) -> ModelSpec:
-        return replace(self, effects=self.effects | {effect})
-
-    def without(self, effect: Effect) -> ModelSpec:
-        return replace(self, effects=self.effects - {effect})
-
-    def label(self) -> str:
-        named = " + ".join(sorted(e.value for e in self.effects)) or "nominal"
-        return named + (" + sensor bend (no id)" if self.sensor_bend else "")
-
-
-def chain_for(gear_ratio: float) -> ChainKind:
-    return ChainKind.RIGID if abs(gear_ratio - 1.0) < 1e-9 else ChainKind.BELT
-
-
-def _log(value: float) -> float:
-    return math.log(value)
 
 
 def layout_for(spec: ModelSpec, obs: Observations) -> Layout:
@@ -216,25 +109,20 @@ def layout_for(spec: ModelSpec, obs: Observations) -> Layout:
     # all (gain error −100 %) and a floating rotor "explain" any motion.
     lay.add(Block("amp_offset_mA", 2, 0.0, -2000.0, 2000.0, BlockKind.LINEAR))
     lay.add(Block("amp_gain_error", 2, 0.0, -0.45, 0.45, BlockKind.LINEAR))
-    lay.add(Block("log_rotor_hz", 1, _log(120.0), _log(3.0), _log(8000.0)))
+    lay.add(Block("log_rotor_hz", 1, math.log(120.0), math.log(3.0), math.log(8000.0)))
     lay.add(Block("rotor_damping_ratio", 1, 0.05, 0.0, 4.0))
     if spec.chain is ChainKind.BELT:
-        lay.add(Block("log_load_ratio", 1, _log(3.0), _log(1e-3), _log(1e4)))
-        lay.add(Block("log_belt_hz", 1, _log(60.0), _log(1.0), _log(8000.0)))
+        lay.add(Block("log_load_ratio", 1, math.log(3.0), math.log(1e-3), math.log(1e4)))
+        lay.add(Block("log_belt_hz", 1, math.log(60.0), math.log(1.0), math.log(8000.0)))
         lay.add(Block("belt_damping_ratio", 1, 0.05, 0.0, 3.0))
         # The load's own bearings and seals: viscous drag on the load, as a damping ratio
         # of the load on its belt (a disk's is part of the rotor's damping).
         lay.add(Block("load_damping_ratio", 1, 0.05, 0.0, 10.0))
-    # Every motor's bearings: Coulomb friction forward and reverse (Kt units, at the load),
-    # never negative; the viscous part is the chain's damping. A healthy unit's is nominal
-    # physics (CLI.md): capped at the healthy level unless the ``friction`` group is on.
-    ceiling = (FRICTION_CEILING if Effect.FRICTION in spec.effects
-               else healthy_coulomb_ceiling(obs))
-    lay.add(Block("friction_coulomb", 2, 0.0, 0.0, ceiling, BlockKind.LINEAR))
-    lay.add(Block("log_friction_smoothing", 1, _log(FRICTION_SMOOTHING_START), _log(1e-4),
-                  _log(FRICTION_SMOOTHING_MAX)))
+    # What a healthy unit always has (its bearings' friction), then each id's own blocks.
+    for block in effects.nominal_blocks(spec, obs):
+        lay.add(block)
     for effect in sorted(spec.effects):
-        for block in GROUP_BLOCKS[effect](spec, obs):
+        for block in effects.terms(effect).blocks(spec, obs):
             lay.add(block)
     if obs.axis_mixed:
         # The share of the radial ripple the tangential axis reads: sin α for an element
@@ -320,182 +208,6 @@ def bend_bases(obs: Observations) -> tuple[NDArray[np.complex128], NDArray[np.co
     return np.asarray(square, dtype=np.complex128), np.asarray(cube, dtype=np.complex128)
 
 
-GroupBlocks = Callable[[ModelSpec, Observations], list[Block]]
-
-
-def _blocks_flux(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # Harmonics of L1f, L2f relative to Lm1: a few percent on real motors.
-    return [Block("flux", 4 * len(FLUX_ORDERS), 0.0, -0.25, 0.25, BlockKind.LINEAR)]
-
-
-def _blocks_distortion(spec: ModelSpec, obs: Observations) -> list[Block]:
-    return [Block("distortion", 4 * len(DISTORTION_ORDERS), 0.0, -0.25, 0.25,
-                  BlockKind.LINEAR)]
-
-
-def _blocks_detent(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # Cogging in Kt units (A): up to half the holding torque at 1 A.
-    return [Block("detent", 2 * len(DETENT_ORDERS), 0.0, -0.5, 0.5, BlockKind.LINEAR)]
-
-
-def _blocks_reluctance(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # Nr·L1/Kt per A: the reluctance torque's peak at 1 A relative to the magnet's.
-    return [Block("reluctance", 1, 0.0, -0.25, 0.25, BlockKind.LINEAR)]
-
-
-def _blocks_resonance(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # A mode needs an inertia beyond its spring and less damping than would stop it
-    # swinging: a coupling with next to nothing beyond it (a hundredth of the inertia) or
-    # damped at twice critical is a filter on the motion, not a transmission mode. Both
-    # were fitted beside strong friction on disks (development friction@1850757460: 2 kHz,
-    # 1 % beyond; @94205421: 700 Hz at ζ 2.0) and named load_resonance; the population's
-    # couplings have 17 % to 97 % of the inertia beyond them and ζ up to 0.1.
-    return [
-        Block("coupling_fraction", 1, 0.5, 0.01, 0.99, rejects=(-1,)),
-        Block("log_coupling_hz", 1, _log(150.0), _log(5.0), _log(8000.0), rejects=(-1, 1)),
-        Block("coupling_damping_ratio", 1, 0.05, 0.0, 2.0, rejects=(1,)),
-    ]
-
-
-def _blocks_lag(spec: ModelSpec, obs: Observations) -> list[Block]:
-    t_ms = obs.metadata.sync_period_s * 1e3
-    return [Block("current_lag_ms", 2, 0.5 * t_ms, 0.0, 20.0 * t_ms, rejects=(1,))]
-
-
-FRICTION_SMOOTHING_MAX = 0.1
-"""Coulomb friction's smoothing, at most this fraction of the slowest mean load speed.
-
-Coulomb friction is a torque that does not change with speed once the load moves. At this
-ceiling its smoothed sign has settled at every hold (tanh 10), so the smoothing (the
-nominal model's since issue 90, the group's before) cannot make a drag that grows with
-speed and damps the ripple at low speeds, which any chain the
-nominal model got slightly wrong could use (a clean belt unit was named friction at
-0.8 % of holding torque, smoothed over half its top speed). Below it the smoothing shows
-only where the load's swing nearly stops it; where it never does, the data do not fix
-it, and a fit resting on the ceiling is friction like any other (a belt with Coulomb
-friction of 19 % of its holding torque fitted the ceiling and explained 6370 of the
-nominal's held-out χ² of 8546)."""
-
-
-HEALTHY_COULOMB = 0.10
-"""CLI.md's healthy unit: Coulomb friction up to this share of the rated holding torque
-(Kt × rated current) at the motor shaft, in either direction, as every motor's bearings
-have. The nominal model fits it and never names it."""
-
-HEALTHY_COULOMB_GUARD = 1.2
-"""The nominal model's ceiling on each direction's Coulomb level, relative to
-``HEALTHY_COULOMB``: a gauge's guard band. The levels are read from the load angles to
-about 0.1 % of the holding torque on the station's own recordings (a disk control with 6
-and 4 % forward and reverse read 6.14 ± 0.09 and 4.02 ± 0.09), but the torque scale rests
-on the drive's current calibration and on the model's own floor (``MODEL_FLOOR``), so a
-healthy unit at the limit must not be named for reading a little above it. Friction from
-1.5 times the limit clears the ceiling by tens of σ of the torque balance."""
-
-FRICTION_TURN_SHARE = 0.3
-"""How far the friction's harmonics are trusted where the load nearly stops (``Model.floor``):
-to about a third, the spread between the common laws of friction at a reversal."""
-
-FLOOR_SMOOTHING = 0.05
-"""Of the slowest mean speed: the speed over which the friction of ``Model.turning_floor``
-turns, whatever the fit's own smoothing."""
-
-FRICTION_CEILING = 5.0
-"""Each direction's Coulomb level (Kt units, at the load) once the ``friction`` group
-releases the healthy ceiling: five times the torque of an ampere, more than any motor on
-the fixture could turn against."""
-
-FRICTION_SMOOTHING_START = 0.02
-"""Where the nominal model starts Coulomb friction's smoothing, relative to the slowest mean
-load speed. How sharply a bearing's friction turns is part of the healthy unit, fitted and
-never named: where the load never nears stopping the data say nothing of it (its column is
-zero to the bit, and it stays where it starts); where the load nearly stops, what the fit
-finds says as much about how well the velocity near zero is measured as about the bearing.
-Held fixed, it named healthy units ``friction`` for their smoothing alone, whatever it was
-fixed at: at 2 % of the slowest speed a disk characterized down to 5.5 Hz (none@41143823,
-bearings' Coulomb 8.6 and 1.8 %), at the bearing's own 0.025 rad/s another (none@502, 9.9
-and 4.2 %, fitted at 4.6 %: held-out χ² 1,907 → 1,768)."""
-
-
-def healthy_coulomb_ceiling(obs: Observations) -> float:
-    """The nominal model's ceiling on each Coulomb level, in Kt units at the load: seen at
-    the motor a load torque is ·n, and the holding torque in Kt units is the rated current."""
-    rated_A = obs.metadata.rated_current_mA / 1000.0
-    return HEALTHY_COULOMB * HEALTHY_COULOMB_GUARD * rated_A / obs.metadata.gear_ratio
-
-
-def _blocks_friction(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # The Coulomb levels and how sharply they turn are the nominal model's (``layout_for``):
-    # the group frees the levels of the healthy ceiling and adds no block of its own, so it
-    # counts as one parameter in every test (``diagnose.compare``).
-    return []
-
-
-MIN_CLOCK_PPM = 5.0
-"""A clock rate nearer SYNC's than this is the constant delay the base model has: over a
-minute's recording it moves the samples by a third of a SYNC period at most, and the
-clocks the group is for run tens to hundreds of ppm off. Periodogram peaks below it are
-not started from, and a fit that ends below it is not a drifting clock
-(``Block.null_band``)."""
-
-
-def _blocks_clock(spec: ModelSpec, obs: Observations) -> list[Block]:
-    drift = Block("clock_drift_ppm", 1, 0.0, -5000.0, 5000.0, rejects=(-1, 1),
-                  null_band=MIN_CLOCK_PPM)
-    if not spec.clock_wraps:
-        return [drift]  # a constant part would be the sensor's delay again
-    return [drift, Block("clock_phase", 1, 0.5, -0.5, 1.5)]
-
-
-def _blocks_saturation(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # The two non-negative weights of ``saturation_shapes``: every even quartic law that
-    # never rises over the recorded currents, and nothing else (see ``Model.saturation``).
-    return [Block("saturation", 2, 0.0, 0.0, 0.8, BlockKind.LINEAR)]
-
-
-def saturation_shapes(u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
-                                                        NDArray[np.float64]]:
-    """Kt's two falls in u² = (|i|/I_max)², I_max the recording's largest current.
-
-    An even quartic 1 − D·u² + E·u⁴ falls monotonically on [0, 1] exactly when its
-    coefficients are a non-negative mix of these two: 2u² − u⁴ (falls early and levels
-    off at the largest current) and u⁴ (flat at zero, steepening). Saturation only ever
-    takes torque away, so with the weights kept non-negative the group cannot pose as a
-    Kt that rises with the current, which is what a reluctance spring looks like.
-    """
-    return 2.0 * u2 - u2 * u2, u2 * u2
-
-
-def saturation_slopes(u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
-                                                        NDArray[np.float64]]:
-    """d/d(u²) of ``saturation_shapes``, beside them so that the law is written once."""
-    return 2.0 - 2.0 * u2, 2.0 * u2
-
-
-UNBALANCE_MAX = 0.3
-"""The once-per-revolution load's bound, a fraction of the holding torque at the largest
-current: a third of what holds the rotor is no unbalance a unit would be shipped with."""
-
-
-def _blocks_eccentricity(spec: ModelSpec, obs: Observations) -> list[Block]:
-    # The airgap's modulation of the motor's torque, and the load the off-centre mass
-    # puts on the rotor: CLI.md's "torque or load periodic once per mechanical revolution".
-    return [Block("eccentricity", 2, 0.0, -0.3, 0.3, BlockKind.LINEAR),
-            Block("unbalance", 2, 0.0, -UNBALANCE_MAX, UNBALANCE_MAX, rejects=(-1, 1))]
-
-
-GROUP_BLOCKS: dict[Effect, GroupBlocks] = {
-    Effect.FLUX_HARMONICS: _blocks_flux,
-    Effect.CURRENT_DISTORTION: _blocks_distortion,
-    Effect.DETENT_TORQUE: _blocks_detent,
-    Effect.RELUCTANCE_TORQUE: _blocks_reluctance,
-    Effect.LOAD_RESONANCE: _blocks_resonance,
-    Effect.CURRENT_LOOP_LAG: _blocks_lag,
-    Effect.FRICTION: _blocks_friction,
-    Effect.SENSOR_CLOCK_DRIFT: _blocks_clock,
-    Effect.MAGNETIC_SATURATION: _blocks_saturation,
-    Effect.ROTOR_ECCENTRICITY: _blocks_eccentricity,
-}
-"""Each vocabulary id's parameters, as the model adds them."""
 
 
 @dataclass(frozen=True)
@@ -690,7 +402,7 @@ SENSOR_KEYS = ("sensor_a1_ms", "sensor_a2_ms2", "clock_drift_ppm", "clock_phase"
 """What the sensor's response is made of (``Model.sensor_response``)."""
 MEASURED_KEYS = ("axis_mix", "sensor_bend")
 """What the measured tangential motion is corrected with (``Model.measured``)."""
-CURRENT_KEYS = ("amp_offset_mA", "amp_gain_error", "distortion", "current_lag_ms")
+CURRENT_KEYS = ("amp_offset_mA", "amp_gain_error", "distortion", "dead_time", "current_lag_ms")
 """What the currents the drive made are made of (``Model.current_coefficients``)."""
 CHAIN_KEYS = ("log_rotor_hz", "rotor_damping_ratio", "log_load_ratio", "log_belt_hz",
               "belt_damping_ratio", "load_damping_ratio", "coupling_fraction",
@@ -698,7 +410,7 @@ CHAIN_KEYS = ("log_rotor_hz", "rotor_damping_ratio", "log_load_ratio", "log_belt
 """What the chain's inertias, springs and dampers are made of (``Model.stages``)."""
 FRICTION_KEYS = ("friction_coulomb", "log_friction_smoothing")
 """What the load's friction is made of, beside the load's motion (``Model.friction_torque``)."""
-TORQUE_KEYS = ("flux", "saturation", "detent", "reluctance")
+TORQUE_KEYS = ("flux", "saturation", "detent", "reluctance", "reluctance_unequal")
 """What the torque reads beside the motion (``Model.torque``, ``Model.torque_slope``)."""
 
 _T = TypeVar("_T")
@@ -902,6 +614,9 @@ class Model:
         # Current harmonics on the grid: order 1 (the table) and the distortion orders.
         self.current_orders = np.array([1, *DISTORTION_ORDERS], dtype=np.float64)
         self.current_synth = np.exp(1j * np.outer(self.current_orders, x))  # (H, N)
+        fine = 2.0 * np.pi * np.arange(DEAD_TIME_OVERSAMPLE * GRID) / (DEAD_TIME_OVERSAMPLE * GRID)
+        self._dead_synth = np.exp(1j * np.outer(self.current_orders, fine))
+        self._dead_knee = dead_time_knee_A(obs)
         self.load_speed = obs.load_speed[:, None]  # rad/s at the load
         self.bend = bend_bases(obs) if spec.sensor_bend else None
         self.radial = radial_ripple(obs) if obs.axis_mixed else None
@@ -1134,7 +849,47 @@ class Model:
         dc_a, ac_a, dc_b, ac_b = self.current_coefficients(p)
         i_a = dc_a + (ac_a @ self.current_synth).real
         i_b = dc_b + (ac_b @ self.current_synth).real
+        if self.layout.has("dead_time"):
+            dead = self._p(p, "dead_time")
+            turn_a, turn_b = self.dead_time_turns(p)
+            i_a, i_b = i_a - dead[0] * turn_a, i_b - dead[1] * turn_b
         return i_a, i_b
+
+    def band_limited(self, fine: NDArray[np.float64]) -> NDArray[np.float64]:
+        """A periodic waveform formed on the dead time's finer grid, cut to the orders the
+        grid holds and sampled on it (the sign's harmonics fall only as 1/k: sampled on
+        the grid itself they would fold back onto the low orders)."""
+        spectrum = np.fft.rfft(fine, axis=-1)[..., :GRID // 2]
+        out: NDArray[np.float64] = np.fft.irfft(spectrum, n=GRID, axis=-1) * (
+            GRID / fine.shape[-1])
+        return out
+
+    def _currents_before_dead_time(self, p: NDArray[np.float64]
+                                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Each phase's current before its dead time, on the dead time's finer grid."""
+        dc_a, ac_a, dc_b, ac_b = self.current_coefficients(p)
+        fine = self._dead_synth
+        return dc_a + (ac_a @ fine).real, dc_b + (ac_b @ fine).real
+
+    def dead_time_taken(self, p: NDArray[np.float64]
+                        ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """How much of a change in each phase's current before its dead time the dead time
+        takes back, on the finer grid: (D/knee)·sech²(i/knee), large only where it turns."""
+        dead = self._p(p, "dead_time")
+        before = self._currents_before_dead_time(p)
+        out = tuple(d / self._dead_knee / np.cosh(i / self._dead_knee) ** 2
+                    for d, i in zip(dead, before, strict=True))
+        return out[0], out[1]
+
+    def dead_time_turns(self, p: NDArray[np.float64]) -> tuple[NDArray[np.float64],
+                                                               NDArray[np.float64]]:
+        """tanh(i/knee) of each phase's current before its dead time, on the grid: the
+        shape a dead-time error of one ampere takes. Formed on a grid four times finer and
+        cut to the orders the grid holds: a sign's harmonics fall only as 1/k, and sampled
+        on the grid itself they fold back onto the low orders."""
+        before_a, before_b = self._currents_before_dead_time(p)
+        return (self.band_limited(np.tanh(before_a / self._dead_knee)),
+                self.band_limited(np.tanh(before_b / self._dead_knee)))
 
     def modulation(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         """1 + ε·cos(θ + φ) averaged over each segment's mechanical angles, (S, 1)."""
@@ -1212,6 +967,13 @@ class Model:
         return np.asarray(2.0 * c2 * m.i_a * m.i_b - s2 * (m.i_a * m.i_a - m.i_b * m.i_b),
                           dtype=np.float64)
 
+    @staticmethod
+    def unequal_reluctance_shape(m: Motion) -> NDArray[np.float64]:
+        """The torque of phases whose reluctance varies unequally, per unit of Nr·L1·u:
+        −sin 2θe·(i_A² + i_B²), whatever the currents' direction."""
+        _, s2 = m.harmonic(2)
+        return np.asarray(-s2 * (m.i_a * m.i_a + m.i_b * m.i_b), dtype=np.float64)
+
     def torque(self, p: NDArray[np.float64], m: Motion) -> NDArray[np.float64]:
         """Eq. (1) in units of Kt on the grid: magnet (with saturation and the flux's
         harmonics), cogging and reluctance; eccentricity modulates the first two."""
@@ -1221,6 +983,8 @@ class Model:
         made = made * m.modulation
         if self.layout.has("reluctance"):
             made = made + self._scalar(p, "reluctance") * self.reluctance_shape(m)
+            made = made + (self._scalar(p, "reluctance_unequal")
+                           * self.unequal_reluctance_shape(m))
         out: NDArray[np.float64] = made
         return out
 
@@ -1230,10 +994,6 @@ class Model:
         """Friction on the load evaluated on its measured velocity: per-order torque (S, K),
         how each step's friction moves with the velocity at its three grid points
         (S, 3, N: ``friction_response``), and mean torque (S,)."""
-        if not self.layout.has("friction_coulomb"):
-            return (np.zeros(self.obs.phasors.shape, dtype=np.complex128),
-                    np.zeros((self.obs.count, _BAND, GRID)),
-                    np.zeros(self.obs.count))
         shapes = self.friction_shapes_here(p)
         c = self._p(p, "friction_coulomb")
         force = c[0] * shapes[0] + c[1] * shapes[1]
@@ -1396,9 +1156,7 @@ class Model:
         force, slope, mean_force = self._friction.get(
             p, lambda: self.friction_torque(p))
         unbalance = self.unbalance(p)
-        taken = drag + unbalance
-        if self.layout.has("friction_coulomb"):
-            taken = taken + self.gear_ratio * mean_force
+        taken = drag + unbalance + self.gear_ratio * mean_force
         swing_above = None if above is None or theta_above is None else theta_above * above
         i_a, i_b = self.currents(p)
         return _Inputs(sensor, alpha, transfer, swing_above, force, slope, taken,
@@ -1456,6 +1214,8 @@ class Model:
             lam = self._scalar(p, "reluctance")
             c2, s2 = m.harmonic(2)
             slope = slope + lam * (-4.0 * s2 * m.i_a * m.i_b - 2.0 * c2 * (m.i_a**2 - m.i_b**2))
+            unequal = self._scalar(p, "reluctance_unequal")
+            slope = slope - unequal * 2.0 * c2 * (m.i_a**2 + m.i_b**2)
         out: NDArray[np.float64] = slope
         return out
 
@@ -1510,8 +1270,6 @@ class Model:
         """The rotor angle's and the needed torque's change for a change ``x`` of the
         load's acceleration (S, K), friction moving with the load's velocity."""
         t = m.transfer
-        if not self.layout.has("friction_coulomb"):
-            return t.a * x, t.c * x
         force = self.friction_response(m.friction_slope, x)
         return t.a * x + t.b * force, t.c * x + t.d * force
 
@@ -1545,20 +1303,12 @@ class Model:
         k = self.obs.orders
         s = self.torque_slope(p, m) @ self.slope_analyse  # s_h, h = 0 … 2K, (S, 2K + 1)
         both = np.concatenate([np.conj(s[:, :0:-1]), s], axis=1)[:, self.order_pairs]
-        t = m.transfer
-        if self.layout.has("friction_coulomb"):
-            # d(error)/dα = spring·(rotor per α) − need per α, each a real map on [Re; Im]
-            # (``rotor_response``, whose friction couples the orders).
-            basis = np.concatenate([np.eye(k), 1j * np.eye(k)]).astype(np.complex128)
-            theta, need = self.rotor_response(m, basis[:, None, :])  # (2K, S, K)
-            spring = _real_map(self.rotor_teeth * both[:, 0], self.rotor_teeth * both[:, 1])
-            return np.asarray(spring @ _stacked(theta) - _stacked(need), dtype=np.float64)
-        theta = self.rotor_teeth * t.a
-        p_mat = both[:, 0] * theta[:, None, :]  # s_{k−j}: order j's swing at order k
-        diagonal = np.arange(k)
-        p_mat[:, diagonal, diagonal] -= t.c
-        q_mat = both[:, 1] * np.conj(theta)[:, None, :]  # s_{k+j}: its mirror image
-        return _real_map(p_mat, q_mat)
+        # d(error)/dα = spring·(rotor per α) − need per α, each a real map on [Re; Im]
+        # (``rotor_response``, whose friction couples the orders).
+        basis = np.concatenate([np.eye(k), 1j * np.eye(k)]).astype(np.complex128)
+        theta, need = self.rotor_response(m, basis[:, None, :])  # (2K, S, K)
+        spring = _real_map(self.rotor_teeth * both[:, 0], self.rotor_teeth * both[:, 1])
+        return np.asarray(spring @ _stacked(theta) - _stacked(need), dtype=np.float64)
 
     def step(self, p: NDArray[np.float64], m: Motion, near: Step | None = None) -> Step:
         """The Newton step at ``p`` (``Step``), its derivative inverted afresh, or with
@@ -1617,20 +1367,34 @@ class Model:
         if lay.has("reluctance"):
             lam = self._scalar(p, "reluctance")
             c2, s2 = m.harmonic(2)
-            d_ia = d_ia + lam * (2.0 * c2 * m.i_b - 2.0 * s2 * m.i_a)
-            d_ib = d_ib + lam * (2.0 * c2 * m.i_a + 2.0 * s2 * m.i_b)
+            unequal = self._scalar(p, "reluctance_unequal")
+            d_ia = d_ia + lam * (2.0 * c2 * m.i_b - 2.0 * s2 * m.i_a) - unequal * 2.0 * s2 * m.i_a
+            d_ib = d_ib + lam * (2.0 * c2 * m.i_a + 2.0 * s2 * m.i_b) - unequal * 2.0 * s2 * m.i_b
         _, ac_a, _, ac_b = self.current_coefficients(p)
+        taken = self.dead_time_taken(p) if lay.has("dead_time") else None
+
+        def after(phase: int, coarse: NDArray[np.float64] | float,
+                  fine: NDArray[np.float64] | float) -> NDArray[np.float64] | float:
+            # A change of a phase's current before its dead time, as the phase carries it:
+            # less what the dead time takes back where the current turns.
+            if taken is None:
+                return coarse
+            return coarse - self.band_limited(taken[phase] * fine)
+
         bases: list[NDArray[np.float64]] = []
         for block in lay.blocks:
             if block.kind is not BlockKind.LINEAR:
                 continue
             name = block.name
             if name == "amp_offset_mA":
-                bases += [1e-3 * d_ia, 1e-3 * d_ib]
+                bases += [d_ia * after(0, 1e-3, 1e-3), d_ib * after(1, 1e-3, 1e-3)]
             elif name == "amp_gain_error":
                 gain = 1.0 + self._p(p, "amp_gain_error")
-                bases += [d_ia * (ac_a @ self.current_synth).real / gain[0],
-                          d_ib * (ac_b @ self.current_synth).real / gain[1]]
+                fine = self._dead_synth
+                bases += [d_ia * after(0, (ac_a @ self.current_synth).real / gain[0],
+                                       (ac_a @ fine).real / gain[0]),
+                          d_ib * after(1, (ac_b @ self.current_synth).real / gain[1],
+                                       (ac_b @ fine).real / gain[1])]
             elif name == "distortion":
                 lag_a, lag_b = self._current_lag(p)
                 ga = (1.0 + self._p(p, "amp_gain_error")[0]) * self.trim_gain[:, :1] * self.amp
@@ -1639,10 +1403,14 @@ class Model:
                     za = ga[:, 0] * lag_a[:, i + 1]
                     zb = gb[:, 0] * lag_b[:, i + 1] * np.exp(-1j * h * QUARTER)
                     wave = self.current_synth[i + 1][None, :]
-                    bases += [d_ia * (za[:, None] * wave).real,
-                              d_ia * (-1j * za[:, None] * wave).real,
-                              d_ib * (zb[:, None] * wave).real,
-                              d_ib * (-1j * zb[:, None] * wave).real]
+                    fine = self._dead_synth[i + 1][None, :]
+                    for phase, z, d_i in ((0, za, d_ia), (1, zb, d_ib)):
+                        for turn in (1.0, -1j):
+                            bases.append(d_i * after(phase, (turn * z[:, None] * wave).real,
+                                                     (turn * z[:, None] * fine).real))
+            elif name == "dead_time":
+                turn_a, turn_b = self.dead_time_turns(p)
+                bases += [-d_ia * turn_a, -d_ib * turn_b]
             elif name == "flux":
                 scale = mod * sat
                 for j in FLUX_ORDERS:
@@ -1656,6 +1424,8 @@ class Model:
                     bases += [mod * sd, mod * cd]
             elif name == "reluctance":
                 bases.append(self.reluctance_shape(m))
+            elif name == "reluctance_unequal":
+                bases.append(self.unequal_reluctance_shape(m))
             elif name == "saturation":
                 b1, b2 = saturation_shapes((m.i_a**2 + m.i_b**2) / self.largest_A**2)
                 bases += [-mod * b1 * magnet, -mod * b2 * magnet]
@@ -1688,14 +1458,12 @@ class Model:
         harmonic = self.analysed(stacked)
         dc = stacked.mean(axis=2)
         lay = self.layout
-        if lay.has("friction_coulomb"):
-            shapes = self.friction_shapes_here(p)
-            order = [b.name for b in lay.blocks if b.kind is BlockKind.LINEAR]
-            row = sum(lay.block(n).size for n in order[:order.index("friction_coulomb")])
-            gear = self.gear_ratio
-            for j in (0, 1):
-                harmonic[row + j] = -m.transfer.d * self.analysed_cells(shapes[j])
-                dc[row + j] = -gear * shapes[j].mean(axis=1)
+        shapes = self.friction_shapes_here(p)
+        order = [b.name for b in lay.blocks if b.kind is BlockKind.LINEAR]
+        row = sum(lay.block(n).size for n in order[:order.index("friction_coulomb")])
+        for j in (0, 1):
+            harmonic[row + j] = -m.transfer.d * self.analysed_cells(shapes[j])
+            dc[row + j] = -self.gear_ratio * shapes[j].mean(axis=1)
         made, step = self.made_and_step(p)
         dc_scale = self.dc_weight()
         beta = p[self.linear_index()]
@@ -1849,11 +1617,10 @@ class Model:
         d_made = lin.slope * d_te
         # The chain's response and need to the step's acceleration (``rotor_response``).
         moved_theta, moved_need = d_a * lin.alpha, d_c * lin.alpha
-        if self.layout.has("friction_coulomb"):
-            force = self.friction_response(m.friction_slope, lin.alpha)
-            d_force_step = self.friction_response(d(lambda x: x.friction_slope), lin.alpha)
-            moved_theta = moved_theta + d_b * force + t.b * d_force_step
-            moved_need = moved_need + d_d * force + t.d * d_force_step
+        force = self.friction_response(m.friction_slope, lin.alpha)
+        d_force_step = self.friction_response(d(lambda x: x.friction_slope), lin.alpha)
+        moved_theta = moved_theta + d_b * force + t.b * d_force_step
+        moved_need = moved_need + d_d * force + t.d * d_force_step
         d_need = d_c * m.alpha + t.c * d_alpha + d_d * m.friction + t.d * d_force
         moved_swing = (moved_theta @ self.synth).real
         d_step_torque = (nr * self.analysed(lin.bend * d_te * lin.swing
@@ -1878,9 +1645,8 @@ class Model:
         """Parameters whose Jacobian columns come through the motion's inputs
         (``motion_columns``): the nonlinear ones, and the friction levels, which move the
         load's swing and with it every rotor angle of the grid."""
-        out = [self.layout.indices(BlockKind.NONLINEAR)]
-        if self.layout.has("friction_coulomb"):
-            out.append(np.arange(self.layout.size)[self.layout.slices["friction_coulomb"]])
+        out = [self.layout.indices(BlockKind.NONLINEAR),
+               np.arange(self.layout.size)[self.layout.slices["friction_coulomb"]]]
         return np.sort(np.concatenate(out))
 
     def _linear_names(self) -> list[str]:

@@ -225,7 +225,7 @@ class Observations:
     def turning(self, per_revolution: int) -> Observations:
         """The same observations with the rotor's mechanical angle taken ``per_revolution``
         times over: a once-per-revolution group fitted on them is tied to angles that are
-        not the rotor's (``diagnose.wrong_angle_chi2``)."""
+        not the rotor's (``candidates.wrong_angle_chi2``)."""
         teeth = self.metadata.rotor_teeth
         return replace(self, mechanical=np.array(
             [mechanical_phasor(s, teeth, per_revolution) for s in self.segments]))

@@ -27,18 +27,11 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from numpy.typing import NDArray
 
-from station.diagnosis.diagnose import (
-    MAX_EFFECTS,
-    RIVAL_Z,
-    SIGNIFICANT_CONFIDENCE,
-    UNEXPLAINED_RATIO,
-    Diagnosis,
-    LocatedKind,
-    chi2_map,
-    trim_constants,
-)
 from station.diagnosis.fit import Fit
+from station.diagnosis.locate import SIGNIFICANT_CONFIDENCE, chi2_map, trim_constants
+from station.diagnosis.name import MAX_EFFECTS, RIVAL_Z, UNEXPLAINED_RATIO
 from station.diagnosis.observations import ConditionKey
+from station.diagnosis.results import Diagnosis, LocatedKind
 from station.htmlpage import cells as _cells
 from station.htmlpage import escape as _e
 from station.htmlpage import figure as _figure

@@ -41,12 +41,13 @@ LA0, LA1, LA2, LB0, LB1, LB2 = 4, 5, 6, 7, 8, 9
 CV0, CP0, CN0, IW0, CVL, CPL, CNL, IWL = 10, 11, 12, 13, 14, 15, 16, 17
 J0, J1, JL, K1, C1, N1, K2, C2, N2 = 18, 19, 20, 21, 22, 23, 24, 25, 26
 R_OVER_H, INV_ISAT2, ECC, ECC_PHASE, UNB, UNB_PHASE = 27, 28, 29, 30, 31, 32
-N_CONSTANTS = 33
+REL_U, DEAD, INV_KNEE = 33, 34, 35
+N_CONSTANTS = 36
 
 # Switches of a unit: which terms it has (0 or 1, NDOF the chain's inertias).
 NDOF, HARMONICS, DISTORTION, LAGGED, COULOMB_L, BEYOND, RESHAPING = 0, 1, 2, 3, 4, 5, 6
-SATURATING, DETENT_ALONE, ECCENTRIC, DRIFTING = 7, 8, 9, 10
-N_SWITCHES = 11
+SATURATING, DETENT_ALONE, ECCENTRIC, DRIFTING, DEAD_TIME = 7, 8, 9, 10, 11
+N_SWITCHES = 12
 
 # One SYNC period's command.
 ENABLED, KX, P0, PV, PA, OFF_A, OFF_B, FA, FB = 0, 1, 2, 3, 4, 5, 6, 7, 8
@@ -87,12 +88,14 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
     """
     size = TABLE_SIZE
     tscale = TABLE_SIZE / (2.0 * math.pi)
-    h, nr, kt, rel = c[H], c[NR], c[KT], c[REL]
+    h, nr, kt, rel, rel_u = c[H], c[NR], c[KT], c[REL], c[REL_U]
     ndof = sw[NDOF]
     enabled = cmd[ENABLED] != 0.0
     has_harm = sw[HARMONICS] != 0
     has_dist = enabled and sw[DISTORTION] != 0
     lagged = enabled and sw[LAGGED] != 0
+    dead_time = enabled and sw[DEAD_TIME] != 0
+    dead, inv_knee = c[DEAD], c[INV_KNEE]
     coulomb_l = sw[COULOMB_L] != 0
     beyond = sw[BEYOND] != 0
     reshaping = sw[RESHAPING] != 0
@@ -127,6 +130,11 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
             if has_dist:
                 ua += fa * _table(distortion[0], x, tscale, size)
                 ub += fb * _table(distortion[1], x, tscale, size)
+            if dead_time:
+                # The bridge's dead time: a current error of fixed size against the
+                # current's sign, turning over the PWM ripple's width (the knee).
+                ua -= dead * math.tanh(ua * inv_knee)
+                ub -= dead * math.tanh(ub * inv_knee)
             if lagged:
                 i_a = la0 * i_a + la1 * t_a + la2 * ua
                 i_b = lb0 * i_b + lb1 * t_b + lb2 * ub
@@ -148,6 +156,8 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
             if not reshaping:
                 tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
                               - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
+                if rel_u != 0.0:
+                    tau -= rel_u * 2.0 * s1 * co1 * (i_a * i_a + i_b * i_b)
             else:
                 # τ is the magnet's so far (detent has its own table here):
                 # m(θ)·(g(|i|)·τ_pm + τ_cg + τ_vr), then the unbalance's load
@@ -159,6 +169,8 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
                 if rel != 0.0:
                     tau += rel * (2.0 * (co1 * co1 - s1 * s1) * i_a * i_b
                                   - 2.0 * s1 * co1 * (i_a * i_a - i_b * i_b))
+                    if rel_u != 0.0:
+                        tau -= rel_u * 2.0 * s1 * co1 * (i_a * i_a + i_b * i_b)
                 if eccentric:
                     tau *= 1.0 + ecc * math.cos(th0 + ecc_phase)
                     tau_em = tau

@@ -113,8 +113,11 @@ class MotorParams:
     """Electromagnetic constants of one motor, eq. (4)-(9), plus its rotor inertia.
 
     ``L1_H`` is the reluctance variation of eq. (4)-(6) (zero under assumption
-    (10)); ``flux_a``/``flux_b`` hold the harmonics j ≥ 2 of L1f/L2f (empty under
-    (10)); ``detent`` holds the L_ff harmonics of eq. (9).
+    (10)); ``L1_unequal`` makes the two phases' own variations unequal, L1·(1 + u) in
+    L11 and L1·(1 − u) in L22 (a motor whose phases' teeth or windings differ): on top of
+    the paper's spring it adds a torque at twice the electrical angle growing with
+    |i|², −Nr·L1·u·sin 2θe·(i_A² + i_B²). ``flux_a``/``flux_b`` hold the harmonics j ≥ 2
+    of L1f/L2f (empty under (10)); ``detent`` holds the L_ff harmonics of eq. (9).
     ``saturation_current_A`` is I_s of ``saturation_factor`` (``None``: the
     iron never saturates); ``eccentricity`` is ``None`` for a centred rotor.
     """
@@ -123,6 +126,7 @@ class MotorParams:
     field_current_A: float = 10.0
     L0_H: float = 4.0e-3
     L1_H: float = 0.0
+    L1_unequal: float = 0.0
     Lm0_H: float = 0.2e-3
     Lm1_H: float = 0.8e-3
     flux_a: tuple[FluxHarmonic, ...] = ()
@@ -140,6 +144,8 @@ class MotorParams:
             raise ValueError("field current, Lm1 and rotor inertia must be positive")
         if self.saturation_current_A is not None and self.saturation_current_A <= 0:
             raise ValueError("the saturation current must be positive")
+        if not -1.0 < self.L1_unequal < 1.0:
+            raise ValueError("unequal phases' reluctance is a fraction of L1 within (-1, 1)")
 
     def saturation_factor(self, current_A: ArrayLike) -> FloatArray:
         """g(|i|) = 1/√(1 + (|i|/I_s)²), the magnet torque's factor (``magnetic_saturation``).
@@ -215,8 +221,10 @@ def inductance_matrix(theta: ArrayLike, motor: MotorParams) -> FloatArray:
     th = _angles(theta)
     nr = motor.rotor_teeth
     te = nr * th
-    l11 = motor.L0_H + motor.L1_H * np.cos(2 * te)
-    l22 = motor.L0_H - motor.L1_H * np.cos(2 * te)
+    l1a = motor.L1_H * (1.0 + motor.L1_unequal)
+    l1b = motor.L1_H * (1.0 - motor.L1_unequal)
+    l11 = motor.L0_H + l1a * np.cos(2 * te)
+    l22 = motor.L0_H - l1b * np.cos(2 * te)
     l12 = -motor.L0_H / 2 + motor.L1_H * np.sin(2 * te)
     l1f, l2f = mutual_inductances(th, motor)
     lff = np.full_like(te, motor.Lf0_H)
@@ -237,7 +245,8 @@ def inductance_matrix_derivative(theta: ArrayLike, motor: MotorParams) -> FloatA
     th = _angles(theta)
     nr = motor.rotor_teeth
     te = nr * th
-    d11 = -2 * nr * motor.L1_H * np.sin(2 * te)
+    d11 = -2 * nr * motor.L1_H * (1.0 + motor.L1_unequal) * np.sin(2 * te)
+    d22 = 2 * nr * motor.L1_H * (1.0 - motor.L1_unequal) * np.sin(2 * te)
     d12 = 2 * nr * motor.L1_H * np.cos(2 * te)
     d1f, d2f = _mutual_derivatives(th, motor)
     dff = np.zeros_like(te)
@@ -245,7 +254,7 @@ def inductance_matrix_derivative(theta: ArrayLike, motor: MotorParams) -> FloatA
         dff = dff - d.order * nr * d.amplitude_H * np.sin(d.order * te)
     out = np.empty((*th.shape, 3, 3))
     out[..., 0, 0] = d11
-    out[..., 1, 1] = -d11
+    out[..., 1, 1] = d22
     out[..., 0, 1] = out[..., 1, 0] = d12
     out[..., 0, 2] = out[..., 2, 0] = d1f
     out[..., 1, 2] = out[..., 2, 1] = d2f

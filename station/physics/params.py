@@ -43,6 +43,7 @@ __all__ = [
     "DetentHarmonic",
     "DiskParams",
     "Eccentricity",
+    "EffectForm",
     "FluxHarmonic",
     "FrictionParams",
     "MechanicsParams",
@@ -78,6 +79,27 @@ class UnnamedEffect(StrEnum):
     SENSOR_TILT = "sensor_tilt"
 
 
+class EffectForm(StrEnum):
+    """Another physical form of a vocabulary id than the one the simulator draws by default.
+
+    The world makes most effects more than one way, and other simulators and benches
+    model them their own way: a name must not depend on the form ours happens to use.
+    """
+
+    DEAD_TIME = "dead_time"
+    """``current_distortion`` from the bridge's dead time (``AmplifierParams.dead_time_mA``)
+    instead of a harmonic waveform."""
+    UNEQUAL_PHASES = "unequal_phases"
+    """``reluctance_torque`` with the two phases' reluctance unequal
+    (``MotorParams.L1_unequal``): a torque at twice the electrical angle growing with |i|²."""
+
+    @property
+    def effect(self) -> Effect:
+        """The id this is a form of."""
+        return {EffectForm.DEAD_TIME: Effect.CURRENT_DISTORTION,
+                EffectForm.UNEQUAL_PHASES: Effect.RELUCTANCE_TORQUE}[self]
+
+
 @dataclass(frozen=True)
 class CurrentHarmonic:
     """A harmonic of one phase's current waveform, relative to its fundamental.
@@ -103,6 +125,12 @@ class AmplifierParams:
     offset); the gain error scales the sine/cosine reference (fundamental and
     distortion) but not the offset path. Bandwidths are those of a first-order
     current loop per phase; ``None`` is an ideal loop.
+
+    ``dead_time_mA`` is the other form of ``current_distortion``: the bridge's dead time
+    leaves each phase a current error of fixed size against the current's sign
+    (i − D·tanh(i/knee)), the sign turning over ``dead_time_knee_mA``, about the PWM
+    ripple's half-width. It distorts every odd order at once, and its share of the
+    waveform falls as the current grows, where a harmonic waveform's holds its share.
     """
 
     offset_a_mA: float = 0.0
@@ -113,8 +141,12 @@ class AmplifierParams:
     distortion_b: tuple[CurrentHarmonic, ...] = ()
     bandwidth_a_hz: float | None = None
     bandwidth_b_hz: float | None = None
+    dead_time_mA: float = 0.0
+    dead_time_knee_mA: float = 20.0
 
     def __post_init__(self) -> None:
+        if self.dead_time_mA < 0 or self.dead_time_knee_mA <= 0:
+            raise ValueError("a dead-time error is non-negative, and turns over a positive knee")
         for e in (self.gain_error_a, self.gain_error_b):
             if not -0.5 < e < 0.5:
                 raise ValueError(f"amplifier gain error {e} is not a plausible fraction")

@@ -79,7 +79,8 @@ def commanded_currents_A(x_u: ArrayLike, amplitude_mA: float, trims: Trims,
     """Steady phase currents (A) at electrical angle x_u: ICD.md §2 plus the amplifier.
 
     i_A = off_trim + off_amp + (1 + e_A)·(g_A/10000)·I·[cos x_u + distortion],
-    phase B likewise on sin x_u = cos(x_u − π/2). The current loop's lag is a
+    phase B likewise on sin x_u = cos(x_u − π/2), less a dead time's error if the
+    amplifier has one. The current loop's lag is a
     dynamic effect and is left to the plant.
     """
     x = np.asarray(x_u, dtype=np.float64)
@@ -95,6 +96,10 @@ def commanded_currents_A(x_u: ArrayLike, amplitude_mA: float, trims: Trims,
         wave_b = wave_b + h.relative * np.cos(shifted)
     i_a = (trims.offset_a_mA + amplifier.offset_a_mA) * 1e-3 + fa * wave_a
     i_b = (trims.offset_b_mA + amplifier.offset_b_mA) * 1e-3 + fb * wave_b
+    if amplifier.dead_time_mA > 0.0:
+        dead, knee = amplifier.dead_time_mA * 1e-3, amplifier.dead_time_knee_mA * 1e-3
+        i_a = i_a - dead * np.tanh(i_a / knee)
+        i_b = i_b - dead * np.tanh(i_b / knee)
     return np.asarray(i_a, dtype=np.float64), np.asarray(i_b, dtype=np.float64)
 
 
@@ -367,6 +372,7 @@ class Plant:
         detent_table = _periodic_tables(detent, 1)
         self._detent_alone = detent_table[0] if detent_table.size else np.zeros(0)
         self._reluctance = nr * motor.L1_H
+        self._reluctance_unequal = nr * motor.L1_H * motor.L1_unequal
 
     def _setup_reshaping(self, motor: MotorParams) -> None:
         """Saturation and eccentricity, as one tuple the loop unpacks only if there is one.
@@ -398,6 +404,7 @@ class Plant:
         self._lag_a = _lag_coefficients(amp.bandwidth_a_hz, self._h)
         self._lag_b = _lag_coefficients(amp.bandwidth_b_hz, self._h)
         self._lagged = amp.bandwidth_a_hz is not None
+        self._dead = (amp.dead_time_mA * 1e-3, 1e3 / amp.dead_time_knee_mA)
         # Per-command current scale: A from mA, gain error and trim gain folded in.
         self._amp_const = (amp.offset_a_mA * 1e-3, amp.offset_b_mA * 1e-3,
                            (1.0 + amp.gain_error_a) / GAIN_UNITY * 1e-3,
@@ -714,6 +721,7 @@ class Plant:
             fl.viscous, fl.coulomb_pos, fl.coulomb_neg, 1.0 / fl.smoothing,
             chain.inertias[0], chain.inertias[1] if ndof == 3 else 1.0, chain.inertias[-1],
             k1, c1, n1, k2, c2, n2, self._radius / self._h, inv_isat2, *eccentricity,
+            self._reluctance_unequal, *self._dead,
         ], dtype=np.float64)
         switches = np.zeros(k_.N_SWITCHES, dtype=np.int64)
         switches[k_.NDOF] = ndof
@@ -727,6 +735,7 @@ class Plant:
         switches[k_.DETENT_ALONE] = detent_alone
         switches[k_.ECCENTRIC] = eccentric
         switches[k_.DRIFTING] = self._drifting
+        switches[k_.DEAD_TIME] = self._dead[0] > 0.0
         if constants.size != k_.N_CONSTANTS:
             raise AssertionError("the plant's constants do not match the kernel's layout")
         return constants, switches

@@ -76,8 +76,11 @@ def _effect_parameters(unit: UnitParams, effect: Effect) -> dict[str, Any]:
             }
             return {"harmonics": as_jsonable(m.detent), **peaks}
         case Effect.RELUCTANCE_TORQUE:
+            unequal = ({"L1_unequal": m.L1_unequal,
+                        "law": "L11 = L0 + L1(1 + u)cos 2θe, L22 = L0 − L1(1 − u)cos 2θe"}
+                       if m.L1_unequal else {})
             return {"L1_H": m.L1_H, "peak_torque_at_rated_Nm": m.rotor_teeth * m.L1_H
-                    * (unit.rated_current_mA / 1000.0) ** 2}
+                    * (unit.rated_current_mA / 1000.0) ** 2, **unequal}
         case Effect.LOAD_RESONANCE:
             modes = modal_analysis(unit, float(unit.rated_current_mA))
             return {**as_jsonable(mech.coupling),
@@ -85,7 +88,11 @@ def _effect_parameters(unit: UnitParams, effect: Effect) -> dict[str, Any]:
                         {"frequency_hz": float(m.frequency_hz),
                          "damping_ratio": float(m.damping_ratio)} for m in modes]}
         case Effect.CURRENT_DISTORTION:
-            return {"phase_a": as_jsonable(a.distortion_a), "phase_b": as_jsonable(a.distortion_b)}
+            dead = ({"dead_time_mA": a.dead_time_mA, "dead_time_knee_mA": a.dead_time_knee_mA,
+                     "law": "i - dead_time * tanh(i / knee) on each phase"}
+                    if a.dead_time_mA else {})
+            return {"phase_a": as_jsonable(a.distortion_a), "phase_b": as_jsonable(a.distortion_b),
+                    **dead}
         case Effect.CURRENT_LOOP_LAG:
             return {"bandwidth_a_hz": a.bandwidth_a_hz, "bandwidth_b_hz": a.bandwidth_b_hz}
         case Effect.FRICTION:

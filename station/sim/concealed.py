@@ -41,7 +41,13 @@ from station.analysis.timeline import Timeline
 from station.core import GAIN_UNITY, SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind, Trims
 from station.errors import StationError
 from station.paths import HOME_ENV
-from station.physics.params import BeltParams, FrictionParams, UnitParams, UnnamedEffect
+from station.physics.params import (
+    BeltParams,
+    EffectForm,
+    FrictionParams,
+    UnitParams,
+    UnnamedEffect,
+)
 from station.physics.truth import unit_truth
 from station.recording import write_json_atomically
 from station.schedules import (
@@ -54,8 +60,8 @@ from station.sim.inprocess import record_in_process, simulate_timeline
 from station.sim.population import Bearings, draw_unit
 
 if TYPE_CHECKING:  # the simulator side of this module must not need the diagnosis
-    from station.diagnosis.diagnose import Nominal
     from station.diagnosis.fit import Fit, HeldOut
+    from station.diagnosis.nominal import Nominal
 
 TRIAL_SEED_FLOOR: Final = 1_000_000
 """Seeds below this are for development; reported trials draw theirs above it."""
@@ -123,6 +129,8 @@ AT_LIMIT_LABEL: Final = "bearings_at_limit"
 REFUSED: Final = "refused"
 """Key of a trial's document when the diagnosis refused the recording (its reason)."""
 UNNAMED_PREFIX: Final = "unnamed:"
+FORM_SEPARATOR: Final = ":"
+"""Between an id and its form in a class's label (``current_distortion:dead_time``)."""
 
 
 @dataclass(frozen=True)
@@ -133,10 +141,21 @@ class TrialClass:
     unnamed: frozenset[UnnamedEffect] = frozenset()
     bearings_at_limit: bool = False
     """A healthy unit whose bearings' Coulomb friction is just under CLI.md's limit."""
+    forms: frozenset[EffectForm] = frozenset()
+    """Ids made in another physical form than the simulator's default (``EffectForm``)."""
+
+    def __post_init__(self) -> None:
+        stray = sorted(f.value for f in self.forms if f.effect not in self.effects)
+        if stray:
+            raise ValueError(f"forms of ids the class does not conceal: {', '.join(stray)}")
+
+    def _effect_label(self, effect: Effect) -> str:
+        form = next((f for f in self.forms if f.effect is effect), None)
+        return effect.value if form is None else f"{effect.value}{FORM_SEPARATOR}{form.value}"
 
     @property
     def label(self) -> str:
-        parts = sorted(e.value for e in self.effects) + sorted(
+        parts = sorted(self._effect_label(e) for e in self.effects) + sorted(
             UNNAMED_PREFIX + u.value for u in self.unnamed)
         if self.bearings_at_limit:
             parts.append(AT_LIMIT_LABEL)
@@ -165,14 +184,26 @@ PAIRS: Final = (
     _pair(Effect.ROTOR_ECCENTRICITY, Effect.FLUX_HARMONICS),
 )
 
+FORMS: Final = (
+    # The forms independent simulators used where the diagnosis went wrong (issue 90):
+    # dead-time distortion named detent_torque, an unequal reluctance beside cogging missed.
+    TrialClass(frozenset({Effect.CURRENT_DISTORTION}), forms=frozenset({EffectForm.DEAD_TIME})),
+    TrialClass(frozenset({Effect.RELUCTANCE_TORQUE}),
+               forms=frozenset({EffectForm.UNEQUAL_PHASES})),
+    TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.RELUCTANCE_TORQUE}),
+               forms=frozenset({EffectForm.UNEQUAL_PHASES})),
+)
+
 CLASSES: Final = (
     TrialClass(),
     TrialClass(bearings_at_limit=True),
     *(TrialClass(frozenset({e})) for e in Effect),
     *PAIRS,
+    *FORMS,
     *(TrialClass(unnamed=frozenset({u})) for u in UnnamedEffect),
 )
-"""Every vocabulary id alone, two-effect combinations, two effects no id describes
+"""Every vocabulary id alone, two-effect combinations, ids in another physical form than
+the simulator's default (``FORMS``), two effects no id describes
 (``UnnamedEffect``: a sensor whose element is not linear, a sensor mounted turned), and
 the negative controls: healthy units, whose bearings have Coulomb friction up to CLI.md's
 limit, one class of them drawn just under it."""
@@ -476,7 +507,7 @@ def plan_trial(case: Case) -> TrialPlan:
     if not case.first_draw:
         load = _load_for(case, load)
     unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed,
-                     bearings=case.bearings)
+                     bearings=case.bearings, forms=case.cls.forms)
     center = _center(rng, unit)
     drawn = unit
     below_hz = RANDOM_CHARACTERIZATION.electrical_hz[1]
@@ -582,7 +613,8 @@ def twin_excess(plan: TrialPlan, recorded: Timeline) -> float:
     for effects, unnamed in twins:
         twin = _kept_as_planned(
             draw_unit(plan.case.seed, load=plan.unit.load, effects=effects, unnamed=unnamed,
-                      bearings=plan.case.bearings),
+                      bearings=plan.case.bearings,
+                      forms=frozenset(f for f in concealed.forms if f.effect in effects)),
             plan.unit)
         if Effect.LOAD_RESONANCE in concealed.effects - effects:
             twin = nominal_equivalent(twin, plan.unit)
@@ -619,7 +651,7 @@ def nominal_as_recorded(timeline: Timeline) -> Nominal:
     sensing element never turned back (``aligned``). A turned element is physics the
     recording carries; turned back, it would leave no excess on the tangential axis
     although the diagnosis saw it, on another axis."""
-    from station.diagnosis.diagnose import aligned, nominal_of  # noqa: PLC0415
+    from station.diagnosis.nominal import aligned, nominal_of  # noqa: PLC0415
 
     return nominal_of(timeline, read=aligned(timeline, turn_back=False))[1]
 
@@ -669,7 +701,7 @@ def weakest_part(parts: list[float]) -> float:
 
 def _fitted_with(nominal: Nominal, effects: frozenset[Effect]) -> Fit:
     """The nominal model with ``effects``' groups, fitted as the diagnosis fits them."""
-    from station.diagnosis.diagnose import fit_spec  # noqa: PLC0415
+    from station.diagnosis.candidates import fit_spec  # noqa: PLC0415
 
     base = nominal.balanced
     if not effects:
@@ -684,7 +716,7 @@ def _held_out_with(nominal: Nominal, effects: frozenset[Effect],
     """The held-out residuals of the nominal model with ``effects``' groups; with
     ``larger`` (a fit with more groups), also polished from that fit's point with its
     other groups taken out, the better kept, as the diagnosis polishes a smaller model
-    again before a larger one's gain counts (``diagnose.polished_from``).
+    again before a larger one's gain counts (``candidates.polished_from``).
 
     Fitted from the nominal alone, the model without one effect of a pair can stop in a
     basin the diagnosis leaves. Benchmark trial current_distortion+current_loop_lag@959466553
@@ -693,7 +725,7 @@ def _held_out_with(nominal: Nominal, effects: frozenset[Effect],
     from the pair's point it left 919, and the diagnosis's own search found 909. What the
     lag adds is the second figure, less than the noise lets anyone name.
     """
-    from station.diagnosis.diagnose import polished_from  # noqa: PLC0415
+    from station.diagnosis.candidates import polished_from  # noqa: PLC0415
     from station.diagnosis.fit import held_out  # noqa: PLC0415
 
     result = _fitted_with(nominal, effects)
@@ -775,7 +807,7 @@ def without_wrong_id(cls: TrialClass, doc: dict[str, Any]) -> bool:
     ``score`` counts as covering the truth).
 
     Among rivals the data cannot order, which one stands first is the rule of one standard
-    error's choice (``diagnose.simplest_first``), not a claim: benchmark trial
+    error's choice (``name.simplest_first``), not a claim: benchmark trial
     magnetic_saturation@1777279463 (45 over its twin, below detection) was named
     ``reluctance_torque`` with ``magnetic_saturation`` and ``load_resonance`` as its rivals.
     """

@@ -35,6 +35,7 @@ from station.physics.params import (
     CurrentHarmonic,
     DiskParams,
     DrawnEffects,
+    EffectForm,
     FrictionParams,
     MechanicsParams,
     SensorParams,
@@ -93,6 +94,17 @@ FRICTION_EFFECT_BEFORE_HEALTHY = (0.10, 0.40)
 """The ``friction`` effect's Coulomb level at the load as drawn before units had a healthy
 unit's bearings (``Bearings.VISCOUS_ONLY`` draws it so: the development plants that tests
 were written on stay what they were)."""
+DEAD_TIME_ERROR = (0.015, 0.04)
+"""The current error a bridge's dead time leaves behind the current loop, as a share of the
+rated current: the dead time's voltage error (a microsecond of a 20 kHz PWM on 24–48 V, a
+volt or so) over what a loop's gain at the electrical frequency leaves of it."""
+DEAD_TIME_KNEE = (0.01, 0.04)
+"""Where the error turns from one sign to the other, as a share of the rated current: about
+the PWM current ripple's half-width."""
+UNEQUAL_PHASES = (0.3, 0.8)
+"""How unequal the two phases' reluctance variations are (``MotorParams.L1_unequal``),
+either sign."""
+
 FRICTION_EFFECT_COULOMB = (0.15, 0.30)
 """The ``friction`` effect's Coulomb level at the load, beside the bearings' own, as a share
 of the rated holding torque at the motor shaft: from 1.5 times the healthy limit, which the
@@ -123,6 +135,7 @@ class _Group(IntEnum):
     SENSOR_TILT = 17
     LINE = 18
     HEALTHY_FRICTION = 19
+    EFFECT_FORMS = 20
 
 
 def _stream(seed: int, group: _Group) -> np.random.Generator:
@@ -227,6 +240,23 @@ def _distortion(seed: int) -> tuple[tuple[CurrentHarmonic, ...], tuple[CurrentHa
             target.append(CurrentHarmonic(order, level * _u(rng, 0.8, 1.2),
                                           phase + _u(rng, -0.3, 0.3)))
     return tuple(phase_a), tuple(phase_b)
+
+
+def _in_form(seed: int, forms: frozenset[EffectForm], motor: MotorParams,
+             amplifier: AmplifierParams, rated_A: float) -> tuple[MotorParams, AmplifierParams]:
+    """``motor`` and ``amplifier`` with their effects made in ``forms`` instead of the
+    default ones: each form's magnitude drawn whether used or not, from a stream of its own,
+    so that the default draws stay as they were."""
+    rng = _stream(seed, _Group.EFFECT_FORMS)
+    dead_mA = _u(rng, *DEAD_TIME_ERROR) * rated_A * 1e3
+    knee_mA = _u(rng, *DEAD_TIME_KNEE) * rated_A * 1e3
+    unequal = _u(rng, *UNEQUAL_PHASES) * (1.0 if rng.random() < 0.5 else -1.0)
+    if EffectForm.DEAD_TIME in forms:
+        amplifier = dataclasses.replace(amplifier, distortion_a=(), distortion_b=(),
+                                        dead_time_mA=dead_mA, dead_time_knee_mA=knee_mA)
+    if EffectForm.UNEQUAL_PHASES in forms:
+        motor = dataclasses.replace(motor, L1_unequal=unequal)
+    return motor, amplifier
 
 
 def _loop_bandwidths(seed: int) -> tuple[float, float]:
@@ -360,16 +390,21 @@ def draw_unit(
     unnamed: frozenset[UnnamedEffect] = frozenset(),
     noise_density_ug: float | None = None,
     bearings: Bearings = Bearings.HEALTHY,
+    forms: frozenset[EffectForm] = frozenset(),
 ) -> UnitParams:
     """One unit of the wide population, always the same for the same seed.
 
     ``effects`` are exactly those on (with this unit's magnitudes, drawn
-    whether on or not); ``unnamed`` adds out-of-vocabulary physics.
+    whether on or not); ``forms`` makes some of them in another physical form
+    (``EffectForm``); ``unnamed`` adds out-of-vocabulary physics.
     ``noise_density_ug`` overrides the sensor's own noise density;
     ``bearings`` chooses how much Coulomb friction the bearings have.
     """
     if seed < 0:
         raise ValueError("a population seed is a non-negative integer")
+    stray = sorted(f.value for f in forms if f.effect not in effects)
+    if stray:
+        raise ValueError(f"forms of ids the unit does not have: {', '.join(stray)}")
     serial = parse_serial(f"SN{POPULATION_SERIAL_BASE + seed % 100000}")
     rated_A = RATED_CURRENT_mA / 1000.0
     base = _motor(seed)
@@ -385,6 +420,7 @@ def draw_unit(
     drawn = DrawnEffects(l1, flux_a, flux_b, detent, saturation, eccentricity,
                          dist_a, dist_b, bw_a, bw_b)
     motor, amplifier = drawn.switched(base, _amplifier(seed), on)
+    motor, amplifier = _in_form(seed, forms, motor, amplifier, rated_A)
 
     disk, disk_radius = _disk(seed)
     belt, belt_radius = _belt(seed, base.rotor_inertia_kgm2)

@@ -10,17 +10,16 @@ from typing import Any
 import pytest
 
 from station.core import Effect
-from station.diagnosis.diagnose import sensor_bandwidth_hz
-from station.diagnosis.groups import HEALTHY_PART
-from station.diagnosis.model import (
+from station.diagnosis.effects import every
+from station.diagnosis.effects.friction import (
     FRICTION_CEILING,
     HEALTHY_COULOMB,
     HEALTHY_COULOMB_GUARD,
-    ChainKind,
-    ModelSpec,
     healthy_coulomb_ceiling,
-    layout_for,
 )
+from station.diagnosis.layout import ChainKind, ModelSpec
+from station.diagnosis.model import layout_for
+from station.diagnosis.results import sensor_bandwidth_hz
 
 
 def _obs(rated_mA: int, gear_ratio: float) -> Any:
@@ -30,8 +29,9 @@ def _obs(rated_mA: int, gear_ratio: float) -> Any:
 
 
 def test_every_id_says_what_a_healthy_unit_has_of_it_and_what_was_decided() -> None:
-    assert set(HEALTHY_PART) == set(Effect)
-    assert all(text.startswith(("Kept", "Nothing kept")) for text in HEALTHY_PART.values())
+    declared = every()
+    assert [t.effect for t in declared] == list(Effect)
+    assert all(t.healthy_part.startswith(("Kept", "Nothing kept")) for t in declared)
 
 
 def test_the_healthy_ceiling_is_the_limit_with_its_guard_at_the_motor_shaft() -> None:

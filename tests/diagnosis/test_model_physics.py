@@ -24,41 +24,37 @@ from station.analysis.harmonics import demodulate
 from station.analysis.pipeline import measure, tangential_signal
 from station.analysis.segments import ChainDecay
 from station.core import Effect
+from station.diagnosis import candidates as candidates_module
 from station.diagnosis import diagnose, observations
 from station.diagnosis import fit as fit_module
-from station.diagnosis.diagnose import (
-    GRID_EXACT,
-    GRID_SHARED,
-    MODEL_ERROR_SHARE,
+from station.diagnosis import nominal as nominal_module
+from station.diagnosis.candidates import (
     REGRID_KEEP,
-    SETTLE_TRUST_CHI2,
-    Candidate,
-    Nominal,
-    Search,
-    _refine_angles,
     candidate_of,
-    compare,
     coupling_as_belt,
-    explains_the_rest,
-    fit_nominal,
     fit_spec,
     kept_physics,
-    local_groups,
-    nominal_of,
-    nominal_starts,
-    settle_fallback,
-    settling_warnings,
-    tied_to_rotor,
-    transplanted,
-    unexplained_of,
-    without_soakers,
 )
+from station.diagnosis.effects import grid_shared, terms
+from station.diagnosis.effects.current_distortion import DEAD_TIME_KNEE
+from station.diagnosis.effects.friction import FRICTION_SMOOTHING_MAX
+from station.diagnosis.effects.load_resonance import belt_as_coupling
+from station.diagnosis.effects.magnetic_saturation import saturation_shapes, saturation_slopes
+from station.diagnosis.effects.sensor_clock_drift import (
+    CLOCK_PEAKS,
+    CLOCK_RATES_PPM,
+    MIN_CLOCK_PPM,
+    ClockScan,
+    segment_delays,
+)
+from station.diagnosis.effects.sensor_clock_drift import starts as clock_starts
 from station.diagnosis.fit import (
     HEAT_FIELD,
     REJECT_MARGIN,
     Fit,
     best_of,
     chosen_starts,
+    covariance,
     first_passes_shared,
     fit,
     held_out,
@@ -68,36 +64,40 @@ from station.diagnosis.fit import (
     rank_passed,
     resting,
     screen,
-    sigmas,
 )
-from station.diagnosis.groups import (
-    CLOCK_PEAKS,
-    CLOCK_RATES_PPM,
-    GROUP_ESTIMATES,
-    GROUP_PARAMETERS,
-    ClockScan,
-    _starts_clock,
-    belt_as_coupling,
-    segment_delays,
-)
+from station.diagnosis.layout import ChainKind, ModelSpec, chain_for
 from station.diagnosis.model import (
     FRICTION_KEYS,
-    FRICTION_SMOOTHING_MAX,
     GRID,
-    GROUP_BLOCKS,
-    MIN_CLOCK_PPM,
     SENSOR_KEYS,
     SETTLED_SCALE,
-    ChainKind,
     Model,
-    ModelSpec,
     Motion,
     _cell_means,
     _cell_means_made,
-    chain_for,
-    saturation_shapes,
-    saturation_slopes,
     sawtooth_mean,
+)
+from station.diagnosis.name import (
+    MODEL_ERROR_SHARE,
+    Search,
+    compare,
+    explains_the_rest,
+    local_groups,
+    tied_to_rotor,
+    unexplained_of,
+    without_soakers,
+)
+from station.diagnosis.nominal import (
+    GRID_EXACT,
+    SETTLE_TRUST_CHI2,
+    Nominal,
+    _refine_angles,
+    fit_nominal,
+    nominal_of,
+    nominal_starts,
+    settle_fallback,
+    settling_warnings,
+    transplanted,
 )
 from station.diagnosis.observations import (
     DIAGNOSIS_ORDERS,
@@ -106,6 +106,7 @@ from station.diagnosis.observations import (
     Observations,
     observe,
 )
+from station.diagnosis.results import Candidate
 from station.physics.motor import rest_angle
 from station.physics.params import SensorParams, UnnamedEffect
 from station.schedules import RandomCharacterizationRanges, random_characterization
@@ -119,7 +120,7 @@ if TYPE_CHECKING:  # not imported at run time: pytest would take the class for t
     from numpy.typing import NDArray
 
     from station.analysis.timeline import Timeline
-    from station.diagnosis.diagnose import Test
+    from station.diagnosis.results import Test
 
 
 def _case(cls: TrialClass, seed: int, *, first_draw: bool = False) -> Case:
@@ -141,6 +142,13 @@ def _timeline(case: Case) -> Timeline:
     plan = _plan(case)
     return simulate_timeline(plan.unit, plan.schedule, seed=case.seed, loss=plan.loss,
                              substeps=PLANT_SUBSTEPS)
+
+
+def _clock_estimates(model: Model, start: NDArray[np.float64]) -> list[dict[str, list[float]]]:
+    """The clock's estimated starts, screened by the fit as ``candidates.fit_spec`` has them."""
+    estimates = terms(Effect.SENSOR_CLOCK_DRIFT).estimates
+    assert estimates is not None
+    return estimates(model, start, screen)
 
 
 @functools.cache
@@ -256,7 +264,7 @@ def test_a_drifting_sensor_clock_is_found_from_the_recording_alone() -> None:
                               effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})), nominal.model.obs)
         start = transplanted(model, nominal)
         starts = [model.with_values(start, values)
-                  for values in GROUP_ESTIMATES[Effect.SENSOR_CLOCK_DRIFT](model, start)]
+                  for values in _clock_estimates(model, start)]
         result = fit(model, starts, keep=len(starts))
     assert result.scalar("clock_drift_ppm") == pytest.approx(truth, abs=5.0)
     assert result.chi2 < 0.5 * nominal.chi2
@@ -280,7 +288,7 @@ def test_a_clocks_sawtooth_is_measured_at_its_full_size_so_its_rate_stands_out()
                               effects=frozenset({Effect.SENSOR_CLOCK_DRIFT})), nominal.model.obs)
         start = transplanted(model, nominal)
         delay, _ = segment_delays(model, start)
-        peaks = _starts_clock(model, start, CLOCK_PEAKS)
+        peaks = clock_starts(model, start, CLOCK_PEAKS)
     assert peaks[0]["clock_drift_ppm"][0] == pytest.approx(sensor.clock_drift_ppm, abs=10.0)
     period = obs.metadata.sync_period_s
     n = obs.span.mean(axis=1)
@@ -373,7 +381,7 @@ def test_a_saturating_motors_fall_of_torque_across_its_currents_is_measured() ->
     result = _added(case, Effect.MAGNETIC_SATURATION).larger.fit
     model = result.model
     lowest = float(np.min(model.obs.amplitude_A))
-    fitted = GROUP_PARAMETERS[Effect.MAGNETIC_SATURATION](result, sigmas(result))
+    fitted = terms(Effect.MAGNETIC_SATURATION).readout(result, covariance(result))
     largest_drop = fitted["kt_drop_at_largest_current_percent"] / 100.0
     b1, b2 = saturation_shapes(np.array((lowest / model.largest_A) ** 2))
     w = result.params[model.layout.slices["saturation"]]
@@ -491,7 +499,7 @@ def test_a_coupling_beside_a_strong_detent_is_found_from_a_start_its_first_rank_
     """Solved at each of the coupling's starts, a strong detent's linear parts favour any
     frequency where the ripple they leave is large, so the starts ranked best before a
     polish are not the ones that lead to the coupling: every start gets the short polish
-    (``GROUP_TOURNAMENT``). On this belt (a detent and a second compliance at 285 Hz) the
+    (``EffectTerms.tournament``). On this belt (a detent and a second compliance at 285 Hz) the
     two best-ranked starts settled at χ² 690 and the coupling did not count."""
     test = _coupling_beside_detent()
     assert test.significant
@@ -1297,8 +1305,37 @@ def test_a_polish_going_on_from_a_stopped_one_reuses_its_jacobian_to_the_same_an
     assert going_on.chi2 == again.chi2
 
 
+def test_a_dead_time_is_made_on_the_grid_without_its_high_orders_folding_onto_the_low() -> None:
+    """A dead time's error turns with the current's sign, whose harmonics fall only as 1/k:
+    sampled on the model's grid its orders near the grid's size would fold onto the few the
+    recording holds. Made four times finer and cut to the grid's orders, the currents'
+    orders 1..8 are those of the error evaluated on a grid 64 times finer to 1e-4 of the
+    error (what folds from the fine grid's own orders 184 and up, at the largest current's
+    sharpest turn: 2e-6 A of 0.03); sampled on the grid itself, orders 40 and up fold in,
+    some hundred times more."""
+    obs = _observations(_case(TrialClass(frozenset({Effect.CURRENT_DISTORTION})), 15))
+    spec = ModelSpec(chain_for(obs.metadata.gear_ratio), frozenset({Effect.CURRENT_DISTORTION}))
+    model = Model(spec, obs)
+    dead = (0.03, 0.02)
+    p = model.with_values(model.layout.start(), {"dead_time": list(dead)})
+    knee = DEAD_TIME_KNEE * obs.metadata.rated_current_mA * 1e-3
+    dc_a, ac_a, dc_b, ac_b = model.current_coefficients(p)
+    n = 64 * GRID
+    synth = np.exp(1j * np.outer(model.current_orders, 2.0 * np.pi * np.arange(n) / n))
+    for dc, ac, error, made in zip((dc_a, dc_b), (ac_a, ac_b), dead, model.currents(p),
+                                   strict=True):
+        before = dc + (ac @ synth).real
+        exact = before - error * np.tanh(before / knee)
+        want = np.fft.rfft(exact, axis=1)[:, 1:9] * (2.0 / n)
+        have = np.fft.rfft(made, axis=1)[:, 1:9] * (2.0 / GRID)
+        np.testing.assert_allclose(have, want, rtol=0.0, atol=1e-4 * error)
+        sampled = exact[:, ::64]
+        folded = np.fft.rfft(sampled, axis=1)[:, 1:9] * (2.0 / GRID)
+        assert np.max(np.abs(folded - want)) > 3e-3 * error
+
+
 def test_a_chain_grid_passed_once_for_every_linear_group_ranks_as_each_group_alone() -> None:
-    """The first passes over a belt's grid are made once for all of ``GRID_SHARED`` (one
+    """The first passes over a belt's grid are made once for all of ``grid_shared()`` (one
     linear design per point, from a model holding every one of them): each group must
     still get the points, and the χ², that screening the grid with its own model gives.
     That holds only for groups whose blocks all start at zero and there leave the
@@ -1308,16 +1345,20 @@ def test_a_chain_grid_passed_once_for_every_linear_group_ranks_as_each_group_alo
     spec = ModelSpec(ChainKind.BELT)
     nominal = Model(spec, obs)
     x = nominal_starts(nominal)[0]
-    for effect in GRID_SHARED:
-        blocks = GROUP_BLOCKS[effect](spec.with_effect(effect), obs)
+    sharing = grid_shared()
+    assert sharing == {Effect.FLUX_HARMONICS, Effect.CURRENT_DISTORTION, Effect.DETENT_TORQUE,
+                      Effect.RELUCTANCE_TORQUE, Effect.MAGNETIC_SATURATION,
+                      Effect.ROTOR_ECCENTRICITY}
+    for effect in sharing:
+        blocks = terms(effect).blocks(spec.with_effect(effect), obs)
         assert all(np.all(np.asarray(b.start) == 0.0) for b in blocks), effect
         model = Model(spec.with_effect(effect), obs)
         at = model.with_values(model.layout.start(), {
             name: list(x[sl]) for name, sl in nominal.layout.slices.items()})
         np.testing.assert_array_equal(model.motion(at).te, nominal.motion(x).te)
     with threadpool_limits(limits=1, user_api="blas"):
-        union = Model(replace(spec, effects=GRID_SHARED), obs)
-        effects = sorted(GRID_SHARED)
+        union = Model(replace(spec, effects=sharing), obs)
+        effects = sorted(sharing)
         models = [Model(spec.with_effect(e), obs) for e in effects]
         shared = first_passes_shared(union, models, nominal_starts(union), GRID_EXACT)
         for effect, model, passed in zip(effects, models, shared, strict=True):
@@ -1386,7 +1427,7 @@ def test_a_model_judged_again_with_new_weights_is_polished_from_where_the_first_
         again = fit(Model(base.model.spec, floored), [base.params], keep=1)
         searched = fit_spec(floored, earlier.spec, again, nominal.free)
         calls: list[object] = []
-        monkeypatch.setattr(diagnose, "fit_spec", lambda *args: calls.append(args))
+        monkeypatch.setattr(candidates_module, "fit_spec", lambda *args: calls.append(args))
         second = Search(floored, Candidate(again.model.spec, again, held_out(again)),
                         nominal.free, None, first)
         polished = second.get(effects)
@@ -1409,7 +1450,7 @@ def test_a_short_polish_of_every_start_picks_the_ones_worth_polishing_in_full() 
                       base.model.obs)
         start = transplanted(model, base)
         estimated = [model.with_values(start, v)
-                     for v in GROUP_ESTIMATES[Effect.SENSOR_CLOCK_DRIFT](model, start)]
+                     for v in _clock_estimates(model, start)]
         chosen = chosen_starts(model, [start], 1, estimated)
         assert len(chosen) > HEAT_FIELD  # a field wide enough for the first heat
         counted = _Counting(model)
@@ -1464,7 +1505,7 @@ def test_a_model_grown_from_a_drifting_clock_fits_the_clock_only_in_the_form_it_
         base = nominal.balanced
         search = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
                         nominal.free, None)
-        monkeypatch.setattr(diagnose, "fit_spec", counted)
+        monkeypatch.setattr(candidates_module, "fit_spec", counted)
         single = search.get(clock)
         where_it_entered = list(forms)
         forms.clear()
@@ -1489,7 +1530,7 @@ def test_the_settling_ends_when_a_pass_keeps_the_holds_it_kept_before(
     observed: list[Observations] = []
     fitted: list[Observations] = []
     real_holds, real_observe = observations.settled_holds, observations.observe
-    real_fit = diagnose.fit_nominal
+    real_fit = nominal_module.fit_nominal
 
     def holding(timeline: Timeline, **kwargs: Any) -> Holds:
         holds.append(real_holds(timeline, **kwargs))
@@ -1503,9 +1544,9 @@ def test_the_settling_ends_when_a_pass_keeps_the_holds_it_kept_before(
         fitted.append(obs)
         return real_fit(obs, **kwargs)
 
-    monkeypatch.setattr(diagnose, "settled_holds", holding)
-    monkeypatch.setattr(diagnose, "observe", observing)
-    monkeypatch.setattr(diagnose, "fit_nominal", fitting)
+    monkeypatch.setattr(nominal_module, "settled_holds", holding)
+    monkeypatch.setattr(nominal_module, "observe", observing)
+    monkeypatch.setattr(nominal_module, "fit_nominal", fitting)
     obs, _ = nominal_of(timeline)
     # Before the passes, the holds the data settle alone; then two passes with new holds.
     assert len(holds) >= 4
@@ -1532,7 +1573,7 @@ def test_a_chain_bent_to_hide_a_strong_effect_settles_no_hold(
         observed.append(real_observe(timeline, **kwargs))
         return observed[-1]
 
-    monkeypatch.setattr(diagnose, "observe", observing)
+    monkeypatch.setattr(nominal_module, "observe", observing)
     obs, fits = nominal_of(timeline)
     # Read once, before any chain is known; no pass observed it again with the bent one.
     assert len(observed) == 1 and obs is observed[0]
@@ -2073,7 +2114,7 @@ def test_a_settling_pass_fits_the_nominal_again_from_the_chain_found_without_the
     and must not search the grid (most of a pass's cost)."""
     timeline = _timeline(_case(TrialClass(frozenset({Effect.LOAD_RESONANCE})), 21))
     with threadpool_limits(limits=1, user_api="blas"):
-        first = diagnose.aligned(timeline).first
+        first = nominal_module.aligned(timeline).first
         before = fit_nominal(first)
         settled, _ = nominal_of(timeline)
         assert settled.count > first.count
@@ -2082,7 +2123,7 @@ def test_a_settling_pass_fits_the_nominal_again_from_the_chain_found_without_the
         def no_grid(*_: object) -> None:
             raise AssertionError("the chain grid was searched again")
 
-        monkeypatch.setattr(diagnose, "nominal_starts", no_grid)
+        monkeypatch.setattr(nominal_module, "nominal_starts", no_grid)
         again = fit_nominal(settled, previous=before)
     assert again.balanced.chi2 <= grid.balanced.chi2 * (1.0 + 1e-4)
     assert again.free.chi2 <= grid.free.chi2 * (1.0 + 1e-4)

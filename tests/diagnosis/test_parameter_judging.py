@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from station.diagnosis.fit import PUSH_CHI2, Fit, ParameterState, judge_parameters
-from station.diagnosis.model import Block, Layout, Model
+from station.diagnosis.layout import Block, Layout
+from station.diagnosis.model import Model
 
 ROWS = 100
 

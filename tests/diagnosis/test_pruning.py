@@ -10,8 +10,9 @@ from typing import Any, cast
 import pytest
 
 from station.core import Effect
-from station.diagnosis import diagnose
-from station.diagnosis.diagnose import Candidate, Search, _prune
+from station.diagnosis import name as name_module
+from station.diagnosis.name import Search, _prune
+from station.diagnosis.results import Candidate
 
 FRICTION, COUPLING, RELUCTANCE = (Effect.FRICTION, Effect.LOAD_RESONANCE,
                                   Effect.RELUCTANCE_TORQUE)
@@ -51,7 +52,7 @@ def _test(smaller: Any, larger: Any) -> SimpleNamespace:
 
 @pytest.fixture(autouse=True)
 def _fake_test(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(diagnose, "compare", _test)
+    monkeypatch.setattr(name_module, "compare", _test)
 
 
 def _pruned(search: _Search, *effects: Effect) -> frozenset[Effect]:

@@ -20,7 +20,7 @@ import pytest
 
 from station.analysis.reader import read_recording
 from station.core import Effect
-from station.diagnosis.diagnose import Diagnosis, LocatedKind, LoneHold, Unexplained, diagnose
+from station.diagnosis.diagnose import diagnose
 from station.diagnosis.report import (
     MAX_HARMONIC_ROWS,
     _chi2,
@@ -29,6 +29,7 @@ from station.diagnosis.report import (
     render_html,
     write_report,
 )
+from station.diagnosis.results import Diagnosis, LocatedKind, LoneHold, Unexplained
 from station.htmlpage import num as _num
 from station.sim.concealed import Case, TrialClass, plan_trial, record_trial
 from station.views import diagnosis_view

@@ -7,7 +7,8 @@ from types import SimpleNamespace
 from typing import cast
 
 from station.core import Effect
-from station.diagnosis.diagnose import Candidate, Search, rival_groups
+from station.diagnosis.name import Search, rival_groups
+from station.diagnosis.results import Candidate
 
 DETENT, LAG, COUPLING = Effect.DETENT_TORQUE, Effect.CURRENT_LOOP_LAG, Effect.LOAD_RESONANCE
 

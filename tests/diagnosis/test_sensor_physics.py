@@ -23,7 +23,8 @@ from station.diagnosis.axes import (
     turned_back,
     with_axes_checked,
 )
-from station.diagnosis.diagnose import aligned, diagnose, fit_nominal
+from station.diagnosis.diagnose import diagnose
+from station.diagnosis.nominal import aligned, fit_nominal
 from station.diagnosis.observations import Observations, observe
 from station.physics.params import UnitParams, UnnamedEffect
 from station.sim.concealed import PLANT_SUBSTEPS, Case, TrialClass, plan_trial

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from station.core import SENSOR_RANGES_G, STANDARD_GRAVITY, Effect, LoadKind
-from station.diagnosis.diagnose import nominal_of
+from station.diagnosis.nominal import nominal_of
 from station.physics.params import UnitParams
 from station.physics.plant import modal_analysis
 from station.schedules import (
