@@ -1373,13 +1373,15 @@ class Model:
         _, ac_a, _, ac_b = self.current_coefficients(p)
         taken = self.dead_time_taken(p) if lay.has("dead_time") else None
 
-        def after(phase: int, coarse: NDArray[np.float64] | float,
-                  fine: NDArray[np.float64] | float) -> NDArray[np.float64] | float:
-            # A change of a phase's current before its dead time, as the phase carries it:
-            # less what the dead time takes back where the current turns.
+        def kept(phase: int, base: NDArray[np.float64], d_i: NDArray[np.float64],
+                 fine: NDArray[np.float64] | float) -> NDArray[np.float64]:
+            # ``base``: a change of a phase's current before its dead time times the torque
+            # per ampere; as the phase carries it, less what the dead time takes back where
+            # the current turns (``fine``: the change on the dead time's finer grid).
             if taken is None:
-                return coarse
-            return coarse - self.band_limited(taken[phase] * fine)
+                return base
+            out: NDArray[np.float64] = base - d_i * self.band_limited(taken[phase] * fine)
+            return out
 
         bases: list[NDArray[np.float64]] = []
         for block in lay.blocks:
@@ -1387,14 +1389,14 @@ class Model:
                 continue
             name = block.name
             if name == "amp_offset_mA":
-                bases += [d_ia * after(0, 1e-3, 1e-3), d_ib * after(1, 1e-3, 1e-3)]
+                bases += [kept(0, 1e-3 * d_ia, d_ia, 1e-3), kept(1, 1e-3 * d_ib, d_ib, 1e-3)]
             elif name == "amp_gain_error":
                 gain = 1.0 + self._p(p, "amp_gain_error")
                 fine = self._dead_synth
-                bases += [d_ia * after(0, (ac_a @ self.current_synth).real / gain[0],
-                                       (ac_a @ fine).real / gain[0]),
-                          d_ib * after(1, (ac_b @ self.current_synth).real / gain[1],
-                                       (ac_b @ fine).real / gain[1])]
+                bases += [kept(0, d_ia * (ac_a @ self.current_synth).real / gain[0], d_ia,
+                               (ac_a @ fine).real / gain[0]),
+                          kept(1, d_ib * (ac_b @ self.current_synth).real / gain[1], d_ib,
+                               (ac_b @ fine).real / gain[1])]
             elif name == "distortion":
                 lag_a, lag_b = self._current_lag(p)
                 ga = (1.0 + self._p(p, "amp_gain_error")[0]) * self.trim_gain[:, :1] * self.amp
@@ -1406,8 +1408,8 @@ class Model:
                     fine = self._dead_synth[i + 1][None, :]
                     for phase, z, d_i in ((0, za, d_ia), (1, zb, d_ib)):
                         for turn in (1.0, -1j):
-                            bases.append(d_i * after(phase, (turn * z[:, None] * wave).real,
-                                                     (turn * z[:, None] * fine).real))
+                            bases.append(kept(phase, d_i * (turn * z[:, None] * wave).real, d_i,
+                                              (turn * z[:, None] * fine).real))
             elif name == "dead_time":
                 turn_a, turn_b = self.dead_time_turns(p)
                 bases += [-d_ia * turn_a, -d_ib * turn_b]
