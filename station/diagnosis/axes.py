@@ -30,8 +30,7 @@ from numpy.typing import NDArray
 
 from station.analysis.timeline import Timeline
 from station.core import SATURATED_COUNTS, Axis
-from station.diagnosis.model import radial_ripple
-from station.diagnosis.observations import ConditionKey, Observations, OtherAxis
+from station.diagnosis.observations import ConditionKey, Observations, OtherAxis, radial_ripple
 
 COUPLING_TOLERANCE = 0.03
 """In-phase share of the tangential ripple an aligned sensor may show on another axis:

@@ -60,6 +60,7 @@ from threadpoolctl import threadpool_limits
 
 from station.analysis.timeline import Timeline
 from station.core import Effect, Mapper
+from station.diagnosis import floors
 from station.diagnosis.axes import ElementTurn, axis_couplings, with_axes_checked
 from station.diagnosis.fit import fit, held_out, judge_parameters
 from station.diagnosis.locate import (
@@ -144,7 +145,7 @@ def _reweighted(nominal: Nominal, chosen: Candidate, run: Mapper = map) -> Nomin
     of the recording must then be judged again with the better weights.
     """
     obs = nominal.balanced.model.obs
-    floored = obs.with_floor(chosen.fit.model.floor(chosen.fit.params))
+    floored = obs.with_floor(floors.floor(chosen.fit.model, chosen.fit.params))
     change = np.abs(np.log(floored.sigma / obs.sigma))
     if float(np.quantile(change, 0.99)) < REWEIGHT_CHANGE:
         return None

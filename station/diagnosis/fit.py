@@ -3,11 +3,11 @@
 The solver is scipy's bounded least squares with a Jacobian assembled from
 the model's structure: the linear parameters' columns come from the model's
 design and what each moves through every segment's slip and spring
-(``Model.linear_jacobian``); the remaining parameters (nonlinear, and
+(``jacobian.linear_jacobian``); the remaining parameters (nonlinear, and
 friction's levels) and the per-condition load angles (which share one
 column's work: each touches only its own condition's rows) enter only what
 each segment's motion is made from, and those inputs are differenced and
-carried through the rest by the chain rule (``Model.motion_columns``). A fit
+carried through the rest by the chain rule (``jacobian.motion_columns``). A fit
 of the full model then costs milliseconds per iteration instead of a second.
 The columns must be the residuals' own derivatives: the solver stops where
 they say the gradient vanishes.

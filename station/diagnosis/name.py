@@ -25,7 +25,7 @@ from station.diagnosis.candidates import (
     moves_into_belt,
     refit_job,
 )
-from station.diagnosis.effects import grid_shared, scan_trials, separating_experiment, terms
+from station.diagnosis.effects import grid_shared, ids, scan_trials, separating_experiment, terms
 from station.diagnosis.fit import Fit, HeldOut, covariance, first_passes_shared
 from station.diagnosis.locate import SIGNIFICANT_CONFIDENCE, chi2_confidence, chi2_map
 from station.diagnosis.model import Model
@@ -356,8 +356,8 @@ def _beam(search: Search, progress: Callable[[str], None] | None
     current = search.nominal
     frontier = [search.nominal]
     rounds: list[Round] = []
-    candidates: tuple[Effect, ...] = tuple(Effect)
-    wide: tuple[Effect, ...] = tuple(Effect)
+    candidates: tuple[Effect, ...] = ids()
+    wide: tuple[Effect, ...] = ids()
     for size in range(1, MAX_EFFECTS + 1):
         tried: dict[frozenset[Effect], Test] = {}
         # A strong effect can hide a weak one in the first round: the best model so far
@@ -383,7 +383,7 @@ def _beam(search: Search, progress: Callable[[str], None] | None
             # round's cost.
             helped = {e for t in tried.values() if t.significant
                       for e in t.larger.effects - t.smaller.effects}
-            wide = tuple(e for e in Effect if e in candidates or e in helped)
+            wide = tuple(e for e in ids() if e in candidates or e in helped)
         tried = dict(zip(tried, search.refined(tried.values()), strict=True))
         current = search.latest(current)
         winners = simplest_first(sorted((t for t in tried.values() if t.significant),
@@ -553,7 +553,7 @@ def local_groups(current: Candidate, candidates: tuple[Effect, ...]) -> tuple[Ef
     and the cost is paid only there: of 52 development trials timed side by side, the
     two that leave one took 23 % longer, the other 50 no longer.
     """
-    return tuple(Effect) if unexplained_of(current).significant else candidates
+    return ids() if unexplained_of(current).significant else candidates
 
 
 def name_effects(search: Search, progress: Callable[[str], None] | None = None,
@@ -612,7 +612,7 @@ def rival_groups(search: Search, best: Candidate, effect: Effect,
     with no rival, where the two cannot be told apart.
     """
     rest = best.effects - {effect}
-    fitted = [e for e in Effect if e not in candidates and (rest | {e}, best.spec.sensor_bend)
+    fitted = [e for e in ids() if e not in candidates and (rest | {e}, best.spec.sensor_bend)
               in search.cache]
     return [e for e in (*candidates, *fitted) if e not in best.effects]
 

@@ -17,6 +17,7 @@ from threadpoolctl import threadpool_limits
 from station.analysis.segments import ChainDecay, SettleFallback
 from station.analysis.timeline import Timeline
 from station.core import Mapper
+from station.diagnosis import chain, floors
 from station.diagnosis.axes import ElementTurn, element_turn, turned_back, with_axes_checked
 from station.diagnosis.fit import (
     SCREEN_HELD,
@@ -262,7 +263,7 @@ def _floored(model: Model, first: Fit, run: Mapper) -> tuple[Fit, Fit]:
     # The floor's friction needs its levels, which only the torque balance gives: solved
     # at the free fit's point with the balance on.
     balanced = Model(replace(model.spec, dc_balance=True), model.obs)
-    floored = model.obs.with_floor(balanced.floor(solve_linear(balanced, first.params)))
+    floored = model.obs.with_floor(floors.floor(balanced, solve_linear(balanced, first.params)))
     free = fit(Model(model.spec, floored), [first.params], keep=1, max_nfev=80)
     return free, balanced_fit(free, floored, run=run)
 
@@ -284,7 +285,7 @@ def _mode_matched(model: Model, found: Fit, run: Mapper = map) -> Fit | None:
     if (model.spec.chain is not ChainKind.BELT
             or math.exp(found.scalar("log_load_ratio")) >= DIVERSE_MIN_RATIO):
         return None
-    modes = model.modes(found.params, 1.0)
+    modes = chain.modes(model, found.params, 1.0)
     if not modes:
         return None
     low = modes[0][0]
@@ -345,7 +346,7 @@ def settle_fallback(nominal: Fit) -> SettleFallback:
     # than at rest).
     conditions = {(c.amplitude_mA, round(c.electrical_hz, 1)): (float(r), float(k))
                   for c, r, k in zip(model.obs.conditions, rho,
-                                     model.swing_springs(nominal.params), strict=True)}
+                                     floors.swing_springs(model, nominal.params), strict=True)}
     top = 2.0 * model.obs.orders * float(np.max(np.abs(model.obs.omega))) / (2 * math.pi)
     # What a segment's harmonics resolve: a transient below it is not worth waiting out.
     resolution = float(np.median(model.obs.noise))
@@ -354,7 +355,7 @@ def settle_fallback(nominal: Fit) -> SettleFallback:
     def by_condition(amplitude_mA: int, electrical_hz: float) -> ChainDecay | None:
         # Every hold of a condition asks: its chain's modes are found once.
         angle, spring = conditions.get((amplitude_mA, electrical_hz), (0.0, None))
-        modes = [(f, z) for f, z in model.modes(nominal.params, amplitude_mA / 1000.0,
+        modes = [(f, z) for f, z in chain.modes(model, nominal.params, amplitude_mA / 1000.0,
                                                 angle, spring)
                  if 0 < f <= top]
         if not modes:
@@ -371,7 +372,7 @@ def settle_fallback(nominal: Fit) -> SettleFallback:
 
 
 def _pole(hz: float, damping: float) -> complex:
-    """The upper pole of an underdamped mode (``Model.modes`` lists no other kind)."""
+    """The upper pole of an underdamped mode (``chain.modes`` lists no other kind)."""
     wn = 2 * math.pi * hz
     return complex(-damping * wn, wn * math.sqrt(1.0 - damping * damping))
 

@@ -231,7 +231,7 @@ class Observations:
             [mechanical_phasor(s, teeth, per_revolution) for s in self.segments]))
 
     def with_floor(self, floor: NDArray[np.float64]) -> Observations:
-        """The same observations with a model's own floor (m/s² per phasor, ``Model.floor``)
+        """The same observations with a model's own floor (m/s² per phasor, ``floors.floor``)
         added to the noise."""
         return replace(self, sigma=np.sqrt(self.noise**2 + floor**2))
 
@@ -634,3 +634,39 @@ def noise_sigma(harmonics: list[Harmonics], condition: NDArray[np.intp], orders:
 
 def _skipped(rejected: Rejected, period: float) -> Skipped:
     return Skipped(rejected.start * period, rejected.stop * period, rejected.reason)
+
+
+BEND_GRID = 128
+"""Points per electrical period where the bend's products are formed: the cube of order
+16 reaches order 48, which a grid of 128 resolves without folding."""
+
+
+def radial_ripple(obs: Observations) -> NDArray[np.complex128]:
+    """The centripetal ripple 2Ω·w at the sensor, orders 1..K then beyond, from the
+    measured tangential ripple itself (w = a/(jkω), to first order)."""
+    phasors = obs.phasors if obs.beyond is None else np.hstack([obs.phasors, obs.beyond])
+    k = np.arange(1, phasors.shape[1] + 1, dtype=np.float64)
+    out: NDArray[np.complex128] = (2.0 * obs.load_speed[:, None] * phasors
+                                   / (1j * obs.omega[:, None] * k[None, :]))
+    return out
+
+
+def bend_bases(obs: Observations) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """Harmonics of m²/FS and m³/FS² per segment, m the measured tangential waveform
+    (its mean and every demodulated order), orders 1..K then the orders beyond.
+
+    A sensor reading m = a + c2·a²/FS + c3·a³/FS² is undone to first order in c by
+    a = m − c2·m²/FS − c3·m³/FS²: the products of the measurement itself, fixed by the
+    data, so the bend enters the model linearly.
+    """
+    phasors = obs.phasors if obs.beyond is None else np.hstack([obs.phasors, obs.beyond])
+    k = np.arange(1, phasors.shape[1] + 1, dtype=np.float64)
+    x = 2.0 * np.pi * np.arange(BEND_GRID) / BEND_GRID
+    synth = np.exp(1j * np.outer(k, x))
+    dc = np.zeros(obs.count) if obs.dc is None else obs.dc
+    wave = dc[:, None] + (phasors @ synth).real
+    full_scale = obs.metadata.sensor_full_scale_mps2
+    analyse = 2.0 / BEND_GRID * np.exp(-1j * np.outer(x, k))
+    square = (wave**2 / full_scale) @ analyse
+    cube = (wave**3 / full_scale**2) @ analyse
+    return np.asarray(square, dtype=np.complex128), np.asarray(cube, dtype=np.complex128)

@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.core import GAIN_UNITY, Effect
+from station.diagnosis import chain
 from station.diagnosis.axes import AxisCoupling
 from station.diagnosis.effects.friction import HEALTHY_COULOMB
 from station.diagnosis.fit import Fit, HeldOut, ParameterJudgement, ParameterState, covariance
@@ -329,7 +330,7 @@ def bearing_friction(result: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
     Coulomb forward and reverse and the viscous drag, in % of the rated holding torque at
     the motor shaft, each with its 1σ; and whether a level is beyond a healthy unit's.
 
-    The drag is the chain's damping seen as a mean torque (``Model.drag_coefficient``),
+    The drag is the chain's damping seen as a mean torque (``chain.drag_coefficient``),
     its σ propagated from the fit's covariance through a central difference of it."""
     model = result.model
     rated_A = model.rated_A
@@ -339,7 +340,7 @@ def bearing_friction(result: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
     level_sigma = np.sqrt(np.maximum(np.diag(cov)[sl], 0.0)) * scale
 
     def drag(p: NDArray[np.float64]) -> float:
-        return 100.0 * model.drag_coefficient(model.stages(p)) / rated_A
+        return 100.0 * chain.drag_coefficient(chain.stages_at(model, p)) / rated_A
 
     p = result.params
     gradient = np.zeros(p.size)
@@ -434,7 +435,7 @@ def nominal_parameters(result: Fit, judgements: Iterable[ParameterJudgement] = (
         out["load_inertia_ratio"] = ratio
         out["load_inertia_ratio_sigma"] = ratio * float(sig[sl["log_load_ratio"]][0])
         out["gear_ratio"] = obs.metadata.gear_ratio
-    modes = model.modes(result.params, rated_A)
+    modes = chain.modes(model, result.params, rated_A)
     out["chain_modes_at_rated_current"] = [{"frequency_hz": f, "damping_ratio": z}
                                            for f, z in modes]
     return out

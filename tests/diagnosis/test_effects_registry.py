@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -119,3 +121,35 @@ def test_only_the_declared_healthy_parts_enter_the_nominal_model() -> None:
     assert kept == [Effect.FRICTION]
     assert all(t.healthy_part.startswith("Kept") for t in every()
                if t.nominal_blocks is not None)
+
+
+MODEL_MODULES = ("model", "motion", "chain", "balance", "jacobian", "floors")
+"""The model's own modules: they compose the effects' hooks and name none of them."""
+
+
+def test_the_model_names_no_effect_and_reads_no_effect_s_parameters() -> None:
+    """``Model`` composes its effects' hooks and never branches on one: its modules name
+    no id and no parameter an effect adds (its healthy part, friction's levels, is the
+    nominal model's own and is read by name)."""
+    root = Path(effects.__file__).parent
+    added = set()
+    for module in MODULES.values():
+        if module == "friction":
+            continue
+        tree = ast.parse((root / f"{module}.py").read_text(encoding="utf-8"))
+        added |= {call.args[0].value for call in ast.walk(tree)
+                  if isinstance(call, ast.Call) and getattr(call.func, "id", None) == "Block"
+                  and call.args and isinstance(call.args[0], ast.Constant)}
+    assert {"flux", "dead_time", "clock_drift_ppm", "coupling_fraction"} <= added
+    for name in MODEL_MODULES:
+        source = (root.parent / f"{name}.py").read_text(encoding="utf-8")
+        tree = ast.parse(source)
+        strings = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)
+                   and isinstance(n.value, str)}
+        assert not strings & added, (name, strings & added)
+        named = {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)
+                 and getattr(n.value, "id", None) == "Effect"}
+        assert not named, (name, named)
+        imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+        assert not {m for m in imported if m and m.startswith("station.diagnosis.effects.")
+                    and not m.endswith(".friction")}, (name, imported)

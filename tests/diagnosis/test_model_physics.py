@@ -25,7 +25,7 @@ from station.analysis.pipeline import measure, tangential_signal
 from station.analysis.segments import ChainDecay
 from station.core import Effect
 from station.diagnosis import candidates as candidates_module
-from station.diagnosis import diagnose, observations
+from station.diagnosis import chain, diagnose, floors, observations
 from station.diagnosis import fit as fit_module
 from station.diagnosis import nominal as nominal_module
 from station.diagnosis.candidates import (
@@ -37,7 +37,16 @@ from station.diagnosis.candidates import (
 )
 from station.diagnosis.effects import grid_shared, terms
 from station.diagnosis.effects.current_distortion import DEAD_TIME_KNEE
-from station.diagnosis.effects.friction import FRICTION_SMOOTHING_MAX
+from station.diagnosis.effects.friction import (
+    FRICTION_SMOOTHING_MAX,
+    SETTLED_SCALE,
+    cell_means,
+    cell_means_made,
+    friction_response,
+    friction_response_on,
+    friction_shapes,
+    load_velocity,
+)
 from station.diagnosis.effects.load_resonance import belt_as_coupling
 from station.diagnosis.effects.magnetic_saturation import saturation_shapes, saturation_slopes
 from station.diagnosis.effects.sensor_clock_drift import (
@@ -45,6 +54,7 @@ from station.diagnosis.effects.sensor_clock_drift import (
     CLOCK_RATES_PPM,
     MIN_CLOCK_PPM,
     ClockScan,
+    sawtooth_mean,
     segment_delays,
 )
 from station.diagnosis.effects.sensor_clock_drift import starts as clock_starts
@@ -65,18 +75,10 @@ from station.diagnosis.fit import (
     resting,
     screen,
 )
+from station.diagnosis.hooks import Role
 from station.diagnosis.layout import ChainKind, ModelSpec, chain_for
-from station.diagnosis.model import (
-    FRICTION_KEYS,
-    GRID,
-    SENSOR_KEYS,
-    SETTLED_SCALE,
-    Model,
-    Motion,
-    _cell_means,
-    _cell_means_made,
-    sawtooth_mean,
-)
+from station.diagnosis.model import FRICTION_KEYS, GRID, Model
+from station.diagnosis.motion import Motion
 from station.diagnosis.name import (
     MODEL_ERROR_SHARE,
     Search,
@@ -744,8 +746,8 @@ def test_a_coupling_gets_its_spring_back_from_a_belt_that_had_taken_the_coupling
     chains = [larger.with_values(start, v) for v in belt_as_coupling(larger, start)]
     assert chains
     # The rotor stays as it was, with its drag; the coupling carries the belt's spring.
-    swapped = larger.stages(chains[0])
-    unswapped = smaller.stages(base.params)
+    swapped = chain.stages_at(larger, chains[0])
+    unswapped = chain.stages_at(smaller, base.params)
     ratio2 = smaller.gear_ratio**2
     assert swapped[0].inertia == pytest.approx(unswapped[0].inertia, rel=1e-9)
     assert swapped[0].damping == pytest.approx(unswapped[0].damping, rel=1e-9)
@@ -840,7 +842,7 @@ def test_coulomb_friction_has_settled_at_every_hold_so_it_is_never_a_drag() -> N
                                 {"log_friction_smoothing": [math.log(FRICTION_SMOOTHING_MAX)]})
     slowest = float(np.min(np.abs(model.obs.load_speed)))
     swing = slowest * np.linspace(0.8, 1.2, 41)[None, :]  # a 20 % ripple about it
-    forward, _, slope, _ = model.friction_shapes(ceiling, swing)
+    forward, _, slope, _ = friction_shapes(model, ceiling, swing)
     # (At a ceiling of 0.3 the slope times the speed was 0.03: a drag.)
     assert np.ptp(forward) < 1e-4
     assert np.max(np.abs(slope)) * slowest < 1e-4
@@ -867,8 +869,8 @@ def test_friction_responds_only_in_segments_where_it_has_a_slope_and_there_as_ma
     basis = np.eye(2 * k)[:, None, :k].astype(np.complex128)  # the step's, every segment
     stacked = np.stack([slope, 0.5 * slope])  # a Jacobian's points
     for slopes, x in ((slope, change), (stacked, change), (slope, basis)):
-        quick = model.friction_response(slopes, x)
-        assert np.array_equal(quick, model._friction_response(slopes, x, model.jw))
+        quick = friction_response(model, slopes, x)
+        assert np.array_equal(quick, friction_response_on(model, slopes, x, model.jw))
         assert not np.any(quick[..., ::2, :])
 
 
@@ -900,7 +902,7 @@ def test_friction_is_evaluated_on_the_whole_measured_velocity_orders_above_8_inc
     k = np.arange(1, whole.shape[1] + 1)
     grid = np.arange(GRID) / GRID * 2 * math.pi
     ripple = ((whole / (1j * obs.omega[:, None] * k)) @ np.exp(1j * np.outer(k, grid))).real
-    np.testing.assert_allclose(model.load_velocity(p), obs.load_speed[:, None] + ripple,
+    np.testing.assert_allclose(load_velocity(model, p), obs.load_speed[:, None] + ripple,
                                atol=1e-9 * float(np.max(np.abs(obs.load_speed))))
     alone, both = (held_out(fitted[e]).total for e in fitted)
     assert both < alone / 4
@@ -1423,7 +1425,8 @@ def test_a_model_judged_again_with_new_weights_is_polished_from_where_the_first_
         first = Search(base.model.obs, Candidate(base.model.spec, base, held_out(base)),
                        nominal.free, None)
         earlier = first.get(effects)
-        floored = base.model.obs.with_floor(3.0 * earlier.fit.model.floor(earlier.fit.params))
+        floored = base.model.obs.with_floor(
+            3.0 * floors.floor(earlier.fit.model, earlier.fit.params))
         again = fit(Model(base.model.spec, floored), [base.params], keep=1)
         searched = fit_spec(floored, earlier.spec, again, nominal.free)
         calls: list[object] = []
@@ -1626,9 +1629,8 @@ def test_a_model_keeping_its_pieces_between_evaluations_gives_what_a_fresh_model
 
 
 @pytest.mark.parametrize(("effects", "piece", "keys", "moving"), [
-    ({Effect.SENSOR_CLOCK_DRIFT}, "_load_motion", SENSOR_KEYS, 4),
-    ({Effect.SENSOR_CLOCK_DRIFT, Effect.FRICTION}, "friction_torque",
-     (*SENSOR_KEYS, *FRICTION_KEYS), 7),
+    ({Effect.SENSOR_CLOCK_DRIFT}, "_load_motion", (), 4),
+    ({Effect.SENSOR_CLOCK_DRIFT, Effect.FRICTION}, "friction_torque", FRICTION_KEYS, 7),
 ])
 def test_a_jacobian_makes_a_kept_piece_once_for_each_point_that_moves_it(
         effects: set[Effect], piece: str, keys: tuple[str, ...], moving: int) -> None:
@@ -1651,6 +1653,7 @@ def test_a_jacobian_makes_a_kept_piece_once_for_each_point_that_moves_it(
 
     setattr(model, piece, counted)
     p = model.layout.start()
+    keys = (*model.keys(Role.SENSOR), *keys)  # the sensor's, its clock's included
     reads = {i for name in keys if model.layout.has(name)
              for i in range(model.layout.size)[model.layout.slices[name]]}
     assert len(reads & set(model.motion_index().tolist())) == moving
@@ -1674,7 +1677,7 @@ def test_friction_on_the_grid_is_its_mean_over_each_step_so_a_crossing_moves_it_
     derivative, which the step is built from."""
     x = 2 * np.pi * np.arange(GRID) / GRID
     v = 0.5 + np.sin(x) + 0.1 * np.cos(3 * x)  # crosses zero twice a period
-    mean_t, mean_t2, band_t, band_t2 = _cell_means(v, eps)
+    mean_t, mean_t2, band_t, band_t2 = cell_means(v, eps)
     fine = np.linspace(-0.5, 0.5, 20001)[:-1]  # within each step, in steps
     where = x[:, None] + 2 * np.pi / GRID * fine[None, :]
     straight = np.interp(where.ravel() % (2 * np.pi), np.append(x, 2 * np.pi),
@@ -1687,7 +1690,7 @@ def test_friction_on_the_grid_is_its_mean_over_each_step_so_a_crossing_moves_it_
         up, down = v.copy(), v.copy()
         up[point] += h
         down[point] -= h
-        moved, back = _cell_means(up, eps), _cell_means(down, eps)
+        moved, back = cell_means(up, eps), cell_means(down, eps)
         for shape, band in ((0, band_t), (1, band_t2)):
             numeric = (moved[shape] - back[shape]) / (2.0 * h)
             for offset in (-1, 0, 1):  # the step whose previous, own or next point it is
@@ -1708,7 +1711,7 @@ def test_rows_whose_load_never_nears_a_stop_are_taken_as_settled_to_the_bit(
     floor = margin * SETTLED_SCALE * eps - float(np.min(swing))  # lowest point at the margin
     rows = np.stack([floor + swing, -(floor + swing),  # settled, either way
                      0.1 + swing, swing, 1e-4 * swing])  # near, through and about zero
-    quick, full = _cell_means(rows, eps), _cell_means_made(rows, eps)
+    quick, full = cell_means(rows, eps), cell_means_made(rows, eps)
     for shape, reference in zip(quick, full, strict=True):
         assert shape.shape == reference.shape
         assert np.array_equal(shape, reference)
@@ -1716,7 +1719,7 @@ def test_rows_whose_load_never_nears_a_stop_are_taken_as_settled_to_the_bit(
     assert np.array_equal(quick[0][:2], np.array([[1.0], [-1.0]]) * np.ones((2, GRID)))
     assert not quick[2][:2].any() and not quick[3][:2].any()
     # Any leading shape, as the Jacobian stacks its points.
-    stacked = _cell_means(np.stack([rows, rows[::-1]]), eps)
+    stacked = cell_means(np.stack([rows, rows[::-1]]), eps)
     assert np.array_equal(stacked[2][0], quick[2])
 
 
@@ -1967,8 +1970,8 @@ def test_the_floor_of_an_order_that_rides_alone_is_its_own_magnification() -> No
 
     def own_spring(self: Model, q: np.ndarray, m: Motion) -> np.ndarray:
         """d(error)/d(α) of each order alone: its spring at the period's mean less its need."""
-        theta, need = self.chain_response(m)
-        out: np.ndarray = -self.segment_springs(q, m)[:, None] * theta - need
+        theta, need = chain.chain_response(self, m)
+        out: np.ndarray = -floors.segment_springs(self, q, m)[:, None] * theta - need
         return out
 
     def alone(self: Model, q: np.ndarray, m: Motion) -> np.ndarray:
@@ -1983,11 +1986,11 @@ def test_the_floor_of_an_order_that_rides_alone_is_its_own_magnification() -> No
     own = Model(fitted.model.spec, obs)
     own.step_matrix = alone.__get__(own)  # type: ignore[method-assign]
     m = own.motion(p)
-    theta, need = own.chain_response(m)
-    spring = np.abs(own.segment_springs(p, m)[:, None] * theta)
+    theta, need = chain.chain_response(own, m)
+    spring = np.abs(floors.segment_springs(own, p, m)[:, None] * theta)
     expected = np.maximum((spring + np.abs(need)) / np.abs(own_spring(own, p, m)), 1.0)
-    assert own.magnification(p) == pytest.approx(expected, rel=1e-6)
-    assert np.max(model.magnification(p) / expected) > 1.0 + 1e-3  # coupling is there
+    assert floors.magnification(own, p) == pytest.approx(expected, rel=1e-6)
+    assert np.max(floors.magnification(model, p) / expected) > 1.0 + 1e-3  # coupling is there
 
 
 def test_a_segment_near_its_springs_fold_is_uncertain_at_every_order_its_swing_reaches() -> None:

@@ -7,9 +7,14 @@ keeps that), and its rivals with the experiment that tells them apart. So an eff
 read, changed or reviewed in one file, and a table of ids is never kept by hand.
 
 A module is imported on first use, as python-can's backends are: reading a recording or
-asking for one id's readout loads only what it needs. The modules sit below the model and
-the fit (the layout, the observations and the core are all they import at run time); what
-they need of the fit is handed to them (``Screen``), so the layers stay acyclic.
+asking for one id's readout loads only what it needs. Its physics is a set of hook points
+of the model (``station.diagnosis.hooks``), so the model composes what it is given and
+never branches on an id; an effect outside the vocabulary (a plug-in, or a test's) is
+added with ``register`` and is then searched, fitted, named and reported like the others.
+
+The modules sit below the model and the fit (the layout, the hooks, the observations and
+the core are all they import at run time); what they need of the fit is handed to them
+(``Screen``), so the layers stay acyclic.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.core import Effect
+from station.diagnosis.hooks import NO_HOOKS, Hooks
 from station.errors import StationError
 
 if TYPE_CHECKING:
@@ -53,6 +59,9 @@ MODULES: Final[Mapping[Effect, str]] = {
 }
 """Each id's module in this package."""
 
+_REGISTERED: dict[Effect, str] = {}
+"""Ids beyond the vocabulary's, each with its module's full dotted name (``register``)."""
+
 DEFAULT_EXPERIMENT: Final = (
     "repeat the characterization with more speeds and currents, and trim steps of both signs, "
     "so that the two term groups' signatures (order, current scaling, load angle) part"
@@ -62,7 +71,8 @@ DEFAULT_EXPERIMENT: Final = (
 
 @dataclass(frozen=True)
 class EffectTerms:
-    """One id's declaration: everything but its equations, which the model holds."""
+    """One id's declaration: its parameters, its physics as the model's hook points, and
+    what the diagnosis says of it."""
 
     effect: Effect
     blocks: Callable[[ModelSpec, Observations], list[Block]]
@@ -103,28 +113,54 @@ class EffectTerms:
     scan_trials: Callable[[Model], float] | None = None
     """How many independent models its starts were chosen among by a scan (the
     look-elsewhere effect; None: one)."""
+    hooks: Hooks = NO_HOOKS
+    """Where its physics acts on the model (the currents, the torque, the chain, the load,
+    the sensor)."""
 
 
 class UnknownEffectError(StationError):
     """An id the vocabulary has but no module declares: a packaging fault."""
 
 
+def register(effect: Effect, module: str) -> None:
+    """Add an id beyond the vocabulary, declared by ``module`` (a full dotted name whose
+    ``TERMS`` is its ``EffectTerms``): a plug-in's, or a test's. Its module is imported
+    on first use, as the vocabulary's are."""
+    if effect in MODULES:
+        raise UnknownEffectError(f"{effect!s} is the vocabulary's own and cannot be replaced")
+    _REGISTERED[effect] = module
+    terms.cache_clear()
+
+
+def unregister(effect: Effect) -> None:
+    """Take back an id ``register`` added (a test's, when it is done)."""
+    _REGISTERED.pop(effect, None)
+    terms.cache_clear()
+
+
+def ids() -> tuple[Effect, ...]:
+    """Every id the diagnosis knows: the vocabulary's, then the registered ones."""
+    return (*Effect, *_REGISTERED)
+
+
 @functools.cache
 def terms(effect: Effect) -> EffectTerms:
     """The declaration of ``effect``, its module imported on first use."""
-    try:
-        name = MODULES[effect]
-    except KeyError:
-        raise UnknownEffectError(f"no module declares effect {effect!s}") from None
-    declared = importlib.import_module(f"{__name__}.{name}").TERMS
+    if effect in MODULES:
+        name = f"{__name__}.{MODULES[effect]}"
+    elif effect in _REGISTERED:
+        name = _REGISTERED[effect]
+    else:
+        raise UnknownEffectError(f"no module declares effect {effect!s}")
+    declared = importlib.import_module(name).TERMS
     if not isinstance(declared, EffectTerms) or declared.effect is not effect:
         raise UnknownEffectError(f"module {name} does not declare {effect!s}")
     return declared
 
 
 def every() -> tuple[EffectTerms, ...]:
-    """Every id's declaration, in the vocabulary's order (imports them all)."""
-    return tuple(terms(effect) for effect in Effect)
+    """Every id's declaration, in ``ids``'s order (imports them all)."""
+    return tuple(terms(effect) for effect in ids())
 
 
 def separating_experiment(a: Effect, b: Effect) -> str:

@@ -9,6 +9,7 @@ recording was named ``detent_torque`` while the model had only the waveform)."""
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -17,11 +18,14 @@ from numpy.typing import NDArray
 from station.core import Effect
 from station.diagnosis.effects import EffectTerms
 from station.diagnosis.effects.readings import harmonic_pairs, sigmas
+from station.diagnosis.hooks import Grid, Hooks, Kept, Params, Phasors, Role, TorqueParts
 from station.diagnosis.layout import Block, BlockKind
 
 if TYPE_CHECKING:
     from station.diagnosis.fit import Fit
     from station.diagnosis.layout import ModelSpec
+    from station.diagnosis.model import Model
+    from station.diagnosis.motion import Motion
     from station.diagnosis.observations import Observations
 
 DISTORTION_ORDERS = (2, 3, 4, 5)
@@ -47,6 +51,83 @@ def blocks(spec: ModelSpec, obs: Observations) -> list[Block]:
                   BlockKind.LINEAR),
             # Each phase's dead-time error (A), never negative: it is against the current.
             Block("dead_time", 2, 0.0, 0.0, DEAD_TIME_MAX * rated_A, BlockKind.LINEAR)]
+
+
+QUARTER = math.pi / 2.0
+
+
+def current_wave(model: Model, p: Params) -> tuple[Phasors, Phasors]:
+    # Phase B's harmonic h is turned by h quarter periods: its waveform is phase A's, a
+    # quarter of the commutation angle later.
+    c = model.block(p, "distortion")
+    wave_a = [c[4 * i] - 1j * c[4 * i + 1] for i in range(len(DISTORTION_ORDERS))]
+    wave_b = [(c[4 * i + 2] - 1j * c[4 * i + 3]) * np.exp(-1j * h * QUARTER)
+              for i, h in enumerate(DISTORTION_ORDERS)]
+    return np.asarray(wave_a, dtype=np.complex128), np.asarray(wave_b, dtype=np.complex128)
+
+
+def _before(model: Model, p: Params) -> tuple[Grid, Grid]:
+    """Each phase's current before its dead time, on the current role's finer grid."""
+    dc_a, ac_a, dc_b, ac_b = model.current_coefficients(p)
+    fine = model.fine_synth
+    return dc_a + (ac_a @ fine).real, dc_b + (ac_b @ fine).real
+
+
+def dead_time_taken(model: Model, p: Params) -> tuple[Grid, Grid]:
+    """How much of a change in each phase's current before its dead time the dead time
+    takes back, on the finer grid: (D/knee)·sech²(i/knee), large only where it turns."""
+    dead = model.block(p, "dead_time")
+    knee = dead_time_knee_A(model.obs)
+    out = tuple(d / knee / np.cosh(i / knee) ** 2
+                for d, i in zip(dead, _before(model, p), strict=True))
+    return out[0], out[1]
+
+
+def dead_time_turns(model: Model, p: Params) -> tuple[Grid, Grid]:
+    """tanh(i/knee) of each phase's current before its dead time, on the grid: the shape a
+    dead-time error of one ampere takes, band-limited (``Model.band_limited``)."""
+    before_a, before_b = _before(model, p)
+    knee = dead_time_knee_A(model.obs)
+    return (model.band_limited(np.tanh(before_a / knee)),
+            model.band_limited(np.tanh(before_b / knee)))
+
+
+def current_made(model: Model, p: Params, i_a: Grid, i_b: Grid) -> tuple[Grid, Grid]:
+    dead = model.block(p, "dead_time")
+    turn_a, turn_b = dead_time_turns(model, p)
+    return i_a - dead[0] * turn_a, i_b - dead[1] * turn_b
+
+
+def current_kept(model: Model, p: Params, before: Kept) -> Kept:
+    taken = dead_time_taken(model, p)
+
+    def kept(phase: int, base: Grid, d_i: Grid, fine: Grid | float) -> Grid:
+        # As the phase carries it: less what the dead time takes back where the current
+        # turns (``fine``: the change on the finer grid).
+        out: Grid = before(phase, base, d_i, fine) - d_i * model.band_limited(
+            taken[phase] * fine)
+        return out
+    return kept
+
+
+def bases(model: Model, p: Params, m: Motion, parts: TorqueParts) -> list[Grid]:
+    lag_a, lag_b = model.current_response(p)
+    gain = 1.0 + model.block(p, "amp_gain_error")
+    ga = gain[0] * model.trim_gain[:, :1] * model.amp
+    gb = gain[1] * model.trim_gain[:, 1:] * model.amp
+    out: list[Grid] = []
+    for h in DISTORTION_ORDERS:
+        col = model.current_column(h)
+        za = ga[:, 0] * lag_a[:, col]
+        zb = gb[:, 0] * lag_b[:, col] * np.exp(-1j * h * QUARTER)
+        wave = model.current_synth[col][None, :]
+        fine = model.fine_synth[col][None, :]
+        for phase, z, d_i in ((0, za, parts.d_ia), (1, zb, parts.d_ib)):
+            for turn in (1.0, -1j):
+                out.append(parts.kept(phase, d_i * (turn * z[:, None] * wave).real, d_i,
+                                      (turn * z[:, None] * fine).real))
+    turn_a, turn_b = dead_time_turns(model, p)
+    return [*out, -parts.d_ia * turn_a, -parts.d_ib * turn_b]
 
 
 def readout(fit: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
@@ -80,4 +161,7 @@ TERMS = EffectTerms(
             "change with current, distortion torque grows with it"),
     },
     grid_shared=True,
+    hooks=Hooks(reads={Role.CURRENTS: ("distortion", "dead_time")},
+                current_orders=DISTORTION_ORDERS, current_wave=current_wave,
+                current_made=current_made, current_kept=current_kept, bases=bases),
 )

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 from station.core import Effect
 from station.diagnosis.effects import EffectTerms, Params, Starts
 from station.diagnosis.effects.readings import sigmas
+from station.diagnosis.hooks import Hooks, Phasors, Role
 from station.diagnosis.layout import Block
 
 if TYPE_CHECKING:
@@ -33,6 +34,14 @@ def starts(model: Model, p: Params) -> list[Starts]:
     # A lag looks like a negative sensor delay: start with the sensor's share moved over.
     a1 = float(p[model.layout.slices["sensor_a1_ms"]][0])
     return [{"current_lag_ms": [lag, lag], "sensor_a1_ms": [a1 + lag]} for lag in START_LAGS_MS]
+
+
+def current_response(model: Model, p: Params, response_a: Phasors, response_b: Phasors
+                     ) -> tuple[Phasors, Phasors]:
+    # A first-order loop per phase at each of the waveform's harmonics.
+    tau = model.block(p, "current_lag_ms") * 1e-3
+    s = 1j * model.obs.omega[:, None] * model.current_orders[None, :]
+    return response_a * (1.0 / (1.0 + s * tau[0])), response_b * (1.0 / (1.0 + s * tau[1]))
 
 
 def readout(fit: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
@@ -63,4 +72,6 @@ TERMS = EffectTerms(
             "changes along the recording"),
     },
     starts=starts,
+    hooks=Hooks(reads={Role.CURRENTS: ("current_lag_ms",)},
+                current_response=current_response),
 )

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 from station.core import Effect
 from station.diagnosis.effects import EffectTerms, Params, Starts
 from station.diagnosis.effects.readings import log_value, sigmas, value
+from station.diagnosis.hooks import Hooks, Role, Stage
 from station.diagnosis.layout import Block, ChainKind
 
 if TYPE_CHECKING:
@@ -50,6 +51,21 @@ def blocks(spec: ModelSpec, obs: Observations) -> list[Block]:
               rejects=(-1, 1)),
         Block("coupling_damping_ratio", 1, 0.05, 0.0, 2.0, rejects=(1,)),
     ]
+
+
+def chain(model: Model, p: Params, stages: list[Stage]) -> list[Stage]:
+    """The rotor's stage split by the coupling: the rotor with its share of the inertia,
+    then what lies beyond the coupling, which carries on to the rest of the chain."""
+    frac = model.scalar(p, "coupling_fraction")
+    wc = 2.0 * math.pi * math.exp(model.scalar(p, "log_coupling_hz"))
+    zc = model.scalar(p, "coupling_damping_ratio")
+    rotor = stages[0]
+    beyond = frac * rotor.inertia
+    kappa = beyond * wc * wc
+    return [Stage((1 - frac) * rotor.inertia, rotor.damping, kappa,
+                  2 * zc * math.sqrt(kappa * beyond)),
+            Stage(beyond, 0.0, rotor.spring, rotor.spring_damping, rotor.ratio),
+            *stages[1:]]
 
 
 def starts(model: Model, p: Params) -> list[Starts]:
@@ -140,4 +156,6 @@ TERMS = EffectTerms(
     # 1,206) stood at 1.2 million after three evaluations, 15th of 20 (seven of the ten kept
     # had not left the base), and was cut; its short polish would have been the best.
     tournament=True,
+    hooks=Hooks(reads={Role.CHAIN: ("coupling_fraction", "log_coupling_hz",
+                                    "coupling_damping_ratio")}, chain=chain),
 )

@@ -12,11 +12,14 @@ from numpy.typing import NDArray
 from station.core import Effect
 from station.diagnosis.effects import EffectTerms
 from station.diagnosis.effects.readings import sigmas
+from station.diagnosis.hooks import Grid, Hooks, Params, Role, TorqueParts
 from station.diagnosis.layout import Block, BlockKind
 
 if TYPE_CHECKING:
     from station.diagnosis.fit import Fit
     from station.diagnosis.layout import ModelSpec
+    from station.diagnosis.model import Model
+    from station.diagnosis.motion import Motion
     from station.diagnosis.observations import Observations
 
 
@@ -41,8 +44,33 @@ def saturation_slopes(u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
 
 def blocks(spec: ModelSpec, obs: Observations) -> list[Block]:
     # The two non-negative weights of ``saturation_shapes``: every even quartic law that
-    # never rises over the recorded currents, and nothing else (see ``Model.saturation``).
+    # never rises over the recorded currents, and nothing else (see ``Model.kt_factor``).
     return [Block("saturation", 2, 0.0, 0.0, 0.8, BlockKind.LINEAR)]
+
+
+def _u2(model: Model, i_a: Grid, i_b: Grid) -> Grid:
+    out: Grid = (i_a * i_a + i_b * i_b) / model.largest_A**2
+    return out
+
+
+def kt(model: Model, p: Params, i_a: Grid, i_b: Grid) -> Grid:
+    w1, w2 = (float(v) for v in model.block(p, "saturation"))
+    b1, b2 = saturation_shapes(_u2(model, i_a, i_b))
+    out: Grid = 1.0 - w1 * b1 - w2 * b2
+    return out
+
+
+def kt_slope(model: Model, p: Params, m: Motion) -> tuple[Grid, Grid]:
+    w1, w2 = model.block(p, "saturation")
+    s1, s2 = saturation_slopes((m.i_a**2 + m.i_b**2) / model.largest_A**2)
+    # d(Kt)/d(i) = d(Kt)/d(u²) · 2i/I_max²
+    g = -2.0 * (w1 * s1 + w2 * s2) / model.largest_A**2
+    return g * m.i_a, g * m.i_b
+
+
+def bases(model: Model, p: Params, m: Motion, parts: TorqueParts) -> list[Grid]:
+    b1, b2 = saturation_shapes((m.i_a**2 + m.i_b**2) / model.largest_A**2)
+    return [-parts.modulation * b1 * parts.magnet, -parts.modulation * b2 * parts.magnet]
 
 
 def readout(fit: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
@@ -77,4 +105,6 @@ TERMS = EffectTerms(
         "Nothing kept: every motor saturates somewhat near rated current, but named only "
         "when Kt's fall over the recorded currents is resolved."),
     grid_shared=True,
+    hooks=Hooks(reads={Role.TORQUE: ("saturation",)}, kt=kt, kt_slope=kt_slope,
+                bases=bases),
 )

@@ -11,11 +11,14 @@ from numpy.typing import NDArray
 from station.core import Effect
 from station.diagnosis.effects import EffectTerms
 from station.diagnosis.effects.readings import pair, sigmas
+from station.diagnosis.hooks import Grid, Hooks, Params, Role, TorqueParts
 from station.diagnosis.layout import Block, BlockKind
 
 if TYPE_CHECKING:
     from station.diagnosis.fit import Fit
     from station.diagnosis.layout import ModelSpec
+    from station.diagnosis.model import Model
+    from station.diagnosis.motion import Motion
     from station.diagnosis.observations import Observations
 
 UNBALANCE_MAX = 0.3
@@ -28,6 +31,33 @@ def blocks(spec: ModelSpec, obs: Observations) -> list[Block]:
     # puts on the rotor: CLI.md's "torque or load periodic once per mechanical revolution".
     return [Block("eccentricity", 2, 0.0, -0.3, 0.3, BlockKind.LINEAR),
             Block("unbalance", 2, 0.0, -UNBALANCE_MAX, UNBALANCE_MAX, rejects=(-1, 1))]
+
+
+def modulation(model: Model, p: Params) -> NDArray[np.float64]:
+    """1 + ε·cos(θ + φ) averaged over each segment's mechanical angles, (S, 1)."""
+    e = model.block(p, "eccentricity")
+    mech = model.obs.mechanical
+    out: NDArray[np.float64] = (1.0 + e[0] * mech.real - e[1] * mech.imag)[:, None]
+    return out
+
+
+def load(model: Model, p: Params) -> NDArray[np.float64]:
+    """The off-centre rotor's load, U·sin(θ + φ) averaged over each segment's mechanical
+    angles (Kt units, (S,)), with U·cos φ and U·sin φ as fractions of the holding torque
+    at the largest current.
+
+    Within one electrical period it is a constant load: it moves the rotor along its
+    magnetic spring, and with it every harmonic's phase (order times the slip), from one
+    trim step to the next as the rotor turns through its revolution."""
+    u = model.block(p, "unbalance") * model.largest_A
+    mech = model.obs.mechanical
+    out: NDArray[np.float64] = u[0] * mech.imag + u[1] * mech.real
+    return out
+
+
+def bases(model: Model, p: Params, m: Motion, parts: TorqueParts) -> list[Grid]:
+    mech = model.obs.mechanical[:, None]
+    return [mech.real * parts.inner, -mech.imag * parts.inner]
 
 
 def readout(fit: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
@@ -64,4 +94,6 @@ TERMS = EffectTerms(
             "with the rotor's angle, a drifting clock with time"),
     },
     grid_shared=True,
+    hooks=Hooks(reads={Role.TORQUE: ("eccentricity",), Role.LOAD: ("unbalance",)},
+                modulation=modulation, load=load, bases=bases),
 )

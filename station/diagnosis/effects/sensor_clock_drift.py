@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from station.core import Effect
 from station.diagnosis.effects import EffectTerms, Params, Screen, Starts
 from station.diagnosis.effects.readings import sigmas, value
+from station.diagnosis.hooks import Hooks, Phasors, Role
 from station.diagnosis.layout import Block
 
 if TYPE_CHECKING:
@@ -41,6 +42,82 @@ def blocks(spec: ModelSpec, obs: Observations) -> list[Block]:
         return [drift]  # a constant part would be the sensor's delay again
     return [drift, Block("clock_phase", 1, 0.5, -0.5, 1.5)]
 
+
+CLOCK_POINTS = 32
+"""Sample times per segment where a clock that does not wrap is evaluated."""
+
+
+def clock_middle(obs: Observations) -> float:
+    """The sample number (from the first SYNC) the clock's phase is counted from: the
+    recording's middle, where a change of rate moves no sample, so that rate and phase are
+    nearly independent and a fit can walk their narrow valley."""
+    return 0.5 * (float(obs.span[0, 0]) + float(obs.span[-1, 1]))
+
+
+def sawtooth_mean(u0: NDArray[np.float64], u1: NDArray[np.float64],
+                  a: NDArray[np.float64]) -> NDArray[np.complex128]:
+    """Mean of e^{-ja·frac(u)} for u running linearly from ``u0`` to ``u1`` (per row),
+    for each column of ``a``: a wrapping clock's delays over a segment are T·frac(u).
+
+    With G(v) = ∫₀ᵛ e^{-jax} dx = (1 − e^{-jav})/(ja), an antiderivative of the
+    periodic integrand is F(u) = ⌊u⌋·G(1) + G(frac u), and the mean is
+    [F(u₀) − F(u₁)]/(u₀ − u₁): exact, and smooth in the clock's rate and phase.
+    """
+    small = np.abs(a) < 1e-9
+    ja = np.where(small, 1.0, 1j * a)
+
+    def g(v: NDArray[np.float64]) -> NDArray[np.complex128]:
+        out: NDArray[np.complex128] = np.where(small, v, (1.0 - np.exp(-ja * v)) / ja)
+        return out
+
+    def big_f(u: NDArray[np.float64]) -> NDArray[np.complex128]:
+        part = np.broadcast_to((u - np.floor(u))[:, None], a.shape)
+        out: NDArray[np.complex128] = np.floor(u)[:, None] * g(np.ones_like(a)) + g(part)
+        return out
+
+    width = (u0 - u1)[:, None]
+    still = np.abs(width) < 1e-9  # no drift across the segment: the delay is constant
+    safe = np.where(still, 1.0, width)
+    mean = np.exp(-1j * a * np.mod(0.5 * (u0 + u1), 1.0)[:, None])
+    out: NDArray[np.complex128] = np.where(still, mean, (big_f(u0) - big_f(u1)) / safe)
+    return out
+
+
+def sample_delay(model: Model, p: Params) -> NDArray[np.float64]:
+    """How long before its SYNC each sample was taken (s), at ``CLOCK_POINTS`` sample
+    numbers spread over each segment, (S, M), for a sensor that stamps its own samples:
+    its clock, off by δ, drifts without bound. (One that holds its latest sample per SYNC
+    lags by a sawtooth of one period instead, integrated exactly in ``sawtooth_mean``.)
+    Counted from the recording's middle, like the sawtooth's phase."""
+    obs = model.obs
+    span = obs.span.astype(np.float64)
+    frac = (np.arange(CLOCK_POINTS) + 0.5) / CLOCK_POINTS
+    samples = span[:, :1] + (span[:, 1:] - span[:, :1]) * frac[None, :]
+    t = obs.metadata.sync_period_s
+    drift = model.scalar(p, "clock_drift_ppm") * 1e-6
+    return np.asarray(-t * (samples - clock_middle(obs)) * drift, dtype=np.float64)
+
+
+def clock_factor(model: Model, p: Params, k: NDArray[np.float64]) -> Phasors:
+    """The mean of e^{-jkωd} over each segment's samples, d their delays, (S, K)."""
+    obs = model.obs
+    if model.spec.clock_wraps:
+        # Integrated exactly: a sum over sample points jumps whenever a wrap crosses one
+        # of them, and the fit then stalls on the steps.
+        t = obs.metadata.sync_period_s
+        drift = model.scalar(p, "clock_drift_ppm") * 1e-6
+        phase = model.scalar(p, "clock_phase")
+        span = obs.span.astype(np.float64) - clock_middle(obs)
+        a = k[None, :] * obs.omega[:, None] * t  # (S, K)
+        return sawtooth_mean(phase - span[:, 0] * drift, phase - span[:, 1] * drift, a)
+    delay = sample_delay(model, p)  # (S, M)
+    # e^{-jkωd} as powers of e^{-jωd}: one exponential per sample instead of one per order.
+    z = np.exp(-1j * obs.omega[:, None] * delay)
+    top = int(k.max())
+    powers = np.cumprod(np.broadcast_to(z[:, None, :], (z.shape[0], top, z.shape[1])),
+                        axis=1)
+    out: Phasors = powers[:, k.astype(np.intp) - 1, :].mean(axis=2)
+    return out
 
 
 DELAY_PROBE_S = 1e-5
@@ -105,7 +182,7 @@ class ClockScan:
     def of(cls, model: Model, p: NDArray[np.float64]) -> ClockScan:
         delay, weight = segment_delays(model, p)
         return cls(delay, weight, model.obs.span.mean(axis=1),
-                   model.obs.metadata.sync_period_s, model.clock_middle)
+                   model.obs.metadata.sync_period_s, clock_middle(model.obs))
 
     def sums(self, rates: NDArray[np.float64]) -> NDArray[np.complex128]:
         z = self.weight[:, None] * np.exp(2j * np.pi * (
@@ -268,7 +345,7 @@ def readout(fit: Fit, cov: NDArray[np.float64]) -> dict[str, Any]:
                                              else "sample times drift without wrapping")}
     if fit.model.layout.has("clock_phase"):
         # Reported at the first SYNC, where a reader of the recording would count it from.
-        at_start = fit.scalar("clock_phase") + fit.model.clock_middle * rate * 1e-6
+        at_start = fit.scalar("clock_phase") + clock_middle(fit.model.obs) * rate * 1e-6
         out["sample_phase"] = float(at_start) % 1.0
     return out
 
@@ -284,4 +361,5 @@ TERMS = EffectTerms(
     starts=starts,
     estimates=estimates,
     scan_trials=scan_trials,
+    hooks=Hooks(reads={Role.SENSOR: ("clock_drift_ppm", "clock_phase")}, sensor=clock_factor),
 )
