@@ -46,8 +46,8 @@ N_CONSTANTS = 36
 
 # Switches of a unit: which terms it has (0 or 1, NDOF the chain's inertias).
 NDOF, HARMONICS, DISTORTION, LAGGED, COULOMB_L, BEYOND, RESHAPING = 0, 1, 2, 3, 4, 5, 6
-SATURATING, DETENT_ALONE, ECCENTRIC, DRIFTING, DEAD_TIME = 7, 8, 9, 10, 11
-N_SWITCHES = 12
+SATURATING, DETENT_ALONE, ECCENTRIC, DRIFTING, DEAD_TIME, PI_LOOP = 7, 8, 9, 10, 11, 12
+N_SWITCHES = 13
 
 # One SYNC period's command.
 ENABLED, KX, P0, PV, PA, OFF_A, OFF_B, FA, FB = 0, 1, 2, 3, 4, 5, 6, 7, 8
@@ -94,6 +94,9 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
     has_harm = sw[HARMONICS] != 0
     has_dist = enabled and sw[DISTORTION] != 0
     lagged = enabled and sw[LAGGED] != 0
+    # PI loops on R-L phases: the lag's constants are then each phase's bandwidth ωb
+    # (rad/s), R/L and 1/L, and T_A, T_B hold the loops' integrators.
+    pi_loop = lagged and sw[PI_LOOP] != 0
     dead_time = enabled and sw[DEAD_TIME] != 0
     dead, inv_knee = c[DEAD], c[INV_KNEE]
     coulomb_l = sw[COULOMB_L] != 0
@@ -122,6 +125,9 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
     tau = tau_em = 0.0
     for k in range(steps.shape[0]):
         t, w0, w1 = steps[k, 0], steps[k, 1], steps[k, 2]
+        te = nr * th0
+        s1 = math.sin(te)
+        co1 = math.cos(te)
         # Drive: phase currents from the position demand at this instant.
         if enabled:
             x = kx * (p0 + (pv + pa * t) * t)
@@ -135,7 +141,22 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
                 # current's sign, turning over the PWM ripple's width (the knee).
                 ua -= dead * math.tanh(ua * inv_knee)
                 ub -= dead * math.tanh(ub * inv_knee)
-            if lagged:
+            if pi_loop:
+                # L·i' = Kp(u − i) + Ki·z − R·i − e, z' = u − i, tuned Kp = ωb·L and
+                # Ki = ωb·R (the zero on the phase's pole: u to i is a first-order lag),
+                # e the back-EMF ω·∂τ/∂i; implicit in i, then the integrator.
+                ea = -kt * s1
+                eb = kt * co1
+                if has_harm:
+                    ea += _table(harmonics[0], te, tscale, size)
+                    eb += _table(harmonics[1], te, tscale, size)
+                i_a = (i_a + h * (la0 * (ua + la1 * t_a) - la2 * om0 * ea)) / (
+                    1.0 + h * (la0 + la1))
+                i_b = (i_b + h * (lb0 * (ub + lb1 * t_b) - lb2 * om0 * eb)) / (
+                    1.0 + h * (lb0 + lb1))
+                t_a += h * (ua - i_a)
+                t_b += h * (ub - i_b)
+            elif lagged:
                 i_a = la0 * i_a + la1 * t_a + la2 * ua
                 i_b = lb0 * i_b + lb1 * t_b + lb2 * ub
                 t_a = ua
@@ -144,9 +165,6 @@ def integrate(  # noqa: PLR0917 (numba compiles no keyword-only arguments)
                 i_a = ua
                 i_b = ub
         # Motor: eq. (1) for the fundamental, then whatever the unit adds.
-        te = nr * th0
-        s1 = math.sin(te)
-        co1 = math.cos(te)
         tau = kt * (i_b * co1 - i_a * s1)
         if has_harm:
             tau += i_a * _table(harmonics[0], te, tscale, size)

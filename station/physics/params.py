@@ -48,6 +48,8 @@ __all__ = [
     "FrictionParams",
     "MechanicsParams",
     "MotorParams",
+    "PhaseCircuit",
+    "SecondModeParams",
     "SensorParams",
     "UnitParams",
     "UnnamedEffect",
@@ -92,12 +94,22 @@ class EffectForm(StrEnum):
     UNEQUAL_PHASES = "unequal_phases"
     """``reluctance_torque`` with the two phases' reluctance unequal
     (``MotorParams.L1_unequal``): a torque at twice the electrical angle growing with |i|²."""
+    PI_LOOP = "pi_loop"
+    """``current_loop_lag`` as PI loops on the phases' resistance and inductance, tuned to
+    the drawn bandwidths, with the motor's back-EMF acting on them
+    (``AmplifierParams.pi_loop``), instead of a first-order lag of the command alone."""
+    SECOND_BELT_MODE = "second_belt_mode"
+    """``load_resonance`` beyond a declared belt instead of at the rotor: part of the load
+    on a compliance of its own (``BeltParams.second_mode``), a second mode of the belt's
+    chain. Belts only."""
 
     @property
     def effect(self) -> Effect:
         """The id this is a form of."""
         return {EffectForm.DEAD_TIME: Effect.CURRENT_DISTORTION,
-                EffectForm.UNEQUAL_PHASES: Effect.RELUCTANCE_TORQUE}[self]
+                EffectForm.UNEQUAL_PHASES: Effect.RELUCTANCE_TORQUE,
+                EffectForm.PI_LOOP: Effect.CURRENT_LOOP_LAG,
+                EffectForm.SECOND_BELT_MODE: Effect.LOAD_RESONANCE}[self]
 
 
 @dataclass(frozen=True)
@@ -118,6 +130,18 @@ class CurrentHarmonic:
 
 
 @dataclass(frozen=True)
+class PhaseCircuit:
+    """A motor phase as its current loop sees it: resistance and inductance."""
+
+    resistance_ohm: float
+    inductance_H: float
+
+    def __post_init__(self) -> None:
+        if self.resistance_ohm <= 0 or self.inductance_H <= 0:
+            raise ValueError("a phase's resistance and inductance are positive")
+
+
+@dataclass(frozen=True)
 class AmplifierParams:
     """The drive's own imperfections, on top of whatever trims are written.
 
@@ -125,6 +149,11 @@ class AmplifierParams:
     offset); the gain error scales the sine/cosine reference (fundamental and
     distortion) but not the offset path. Bandwidths are those of a first-order
     current loop per phase; ``None`` is an ideal loop.
+
+    ``pi_loop`` is the other form of ``current_loop_lag``: each loop a PI controller on
+    the phase's R and L, tuned so that command to current is the first-order lag of its
+    bandwidth (Kp = 2π·bandwidth·L, Ki = Kp·R/L), and the motor's back-EMF, its speed
+    times ∂τ/∂i, a disturbance the loop rejects only within its bandwidth.
 
     ``dead_time_mA`` is the other form of ``current_distortion``: the bridge's dead time
     leaves each phase a current error of fixed size against the current's sign
@@ -143,8 +172,11 @@ class AmplifierParams:
     bandwidth_b_hz: float | None = None
     dead_time_mA: float = 0.0
     dead_time_knee_mA: float = 20.0
+    pi_loop: PhaseCircuit | None = None
 
     def __post_init__(self) -> None:
+        if self.pi_loop is not None and self.bandwidth_a_hz is None:
+            raise ValueError("PI current loops need their bandwidths")
         if self.dead_time_mA < 0 or self.dead_time_knee_mA <= 0:
             raise ValueError("a dead-time error is non-negative, and turns over a positive knee")
         for e in (self.gain_error_a, self.gain_error_b):
@@ -203,6 +235,24 @@ class DiskParams:
 
 
 @dataclass(frozen=True)
+class SecondModeParams:
+    """Part of a belt's load on a compliance of its own beyond the belt (a camera head on a
+    bracket, a carriage on a shaft): ``share`` of the load's inertia swings on it, and
+    ``resonance_hz`` is that part's mode with the rest of the load held. Seen at the load
+    shaft, like the belt's own stiffness."""
+
+    share: float
+    resonance_hz: float
+    damping_ratio: float
+    stiffness_Nm_per_rad: float
+    damping_Nms_per_rad: float
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.share < 1.0:
+            raise ValueError("the share of the load beyond a second compliance is in (0, 1)")
+
+
+@dataclass(frozen=True)
 class BeltParams:
     """The paper's pan unit: pinion, toothed belt (N_G = 1/7), heavy camera head.
 
@@ -214,6 +264,7 @@ class BeltParams:
     stiffness_Nm_per_rad: float
     damping_Nms_per_rad: float
     reduction: float = BELT_REDUCTION
+    second_mode: SecondModeParams | None = None
 
 
 @dataclass(frozen=True)

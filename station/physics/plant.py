@@ -166,6 +166,19 @@ def build_chain(unit: UnitParams) -> Chain:
     if belt is None:
         raise ValueError("mechanics without a disk need a belt")
     belt_spring = (belt.stiffness_Nm_per_rad, belt.damping_Nms_per_rad, belt.reduction)
+    second = belt.second_mode
+    if second is not None:
+        if coupling is not None:
+            raise ValueError("a belt with a second mode takes no coupling at the rotor as well")
+        # The load splits at its own compliance: the part beyond it carries the sensor.
+        return Chain(
+            (j_rotor + belt.motor_pulley_inertia_kgm2,
+             (1.0 - second.share) * belt.load_inertia_kgm2,
+             second.share * belt.load_inertia_kgm2),
+            (belt_spring, (second.stiffness_Nm_per_rad, second.damping_Nms_per_rad, 1.0)),
+            (LumpedFriction.combine(rotor_f), LumpedFriction.combine([]),
+             LumpedFriction.combine(load_f)),
+        )
     if coupling is None:
         return Chain(
             (j_rotor + belt.motor_pulley_inertia_kgm2, belt.load_inertia_kgm2),
@@ -404,6 +417,15 @@ class Plant:
         self._lag_a = _lag_coefficients(amp.bandwidth_a_hz, self._h)
         self._lag_b = _lag_coefficients(amp.bandwidth_b_hz, self._h)
         self._lagged = amp.bandwidth_a_hz is not None
+        self._pi_bandwidths: tuple[float, float] | None = None
+        circuit = amp.pi_loop
+        if circuit is not None and amp.bandwidth_a_hz and amp.bandwidth_b_hz:
+            # The kernel's PI loop reads ωb, R/L and 1/L where the lag's coefficients go.
+            wb = (2.0 * math.pi * amp.bandwidth_a_hz, 2.0 * math.pi * amp.bandwidth_b_hz)
+            r_over_l = circuit.resistance_ohm / circuit.inductance_H
+            self._lag_a = (wb[0], r_over_l, 1.0 / circuit.inductance_H)
+            self._lag_b = (wb[1], r_over_l, 1.0 / circuit.inductance_H)
+            self._pi_bandwidths = wb
         self._dead = (amp.dead_time_mA * 1e-3, 1e3 / amp.dead_time_knee_mA)
         # Per-command current scale: A from mA, gain error and trim gain folded in.
         self._amp_const = (amp.offset_a_mA * 1e-3, amp.offset_b_mA * 1e-3,
@@ -591,6 +613,10 @@ class Plant:
             i_a, i_b = commanded_currents_A(x_u, command.amplitude_mA, trims, amp)
             state[k_.I_A] = state[k_.T_A] = float(i_a)
             state[k_.I_B] = state[k_.T_B] = float(i_b)
+            if self._pi_bandwidths is not None:
+                # A PI loop's integrator holds the current over its bandwidth at rest.
+                state[k_.T_A] = float(i_a) / self._pi_bandwidths[0]
+                state[k_.T_B] = float(i_b) / self._pi_bandwidths[1]
         else:
             state[k_.I_A] = state[k_.I_B] = state[k_.T_A] = state[k_.T_B] = 0.0
         self._xf0 = self._xf1 = 0.0
@@ -736,6 +762,7 @@ class Plant:
         switches[k_.ECCENTRIC] = eccentric
         switches[k_.DRIFTING] = self._drifting
         switches[k_.DEAD_TIME] = self._dead[0] > 0.0
+        switches[k_.PI_LOOP] = self._pi_bandwidths is not None
         if constants.size != k_.N_CONSTANTS:
             raise AssertionError("the plant's constants do not match the kernel's layout")
         return constants, switches

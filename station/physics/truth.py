@@ -83,7 +83,10 @@ def _effect_parameters(unit: UnitParams, effect: Effect) -> dict[str, Any]:
                     * (unit.rated_current_mA / 1000.0) ** 2, **unequal}
         case Effect.LOAD_RESONANCE:
             modes = modal_analysis(unit, float(unit.rated_current_mA))
-            return {**as_jsonable(mech.coupling),
+            where = (as_jsonable(mech.coupling) if mech.coupling is not None else
+                     {"second_belt_mode": as_jsonable(mech.belt.second_mode if mech.belt
+                                                      else None)})
+            return {**where,
                     "chain_modes_at_rated_current": [
                         {"frequency_hz": float(m.frequency_hz),
                          "damping_ratio": float(m.damping_ratio)} for m in modes]}
@@ -94,7 +97,11 @@ def _effect_parameters(unit: UnitParams, effect: Effect) -> dict[str, Any]:
             return {"phase_a": as_jsonable(a.distortion_a), "phase_b": as_jsonable(a.distortion_b),
                     **dead}
         case Effect.CURRENT_LOOP_LAG:
-            return {"bandwidth_a_hz": a.bandwidth_a_hz, "bandwidth_b_hz": a.bandwidth_b_hz}
+            pi = ({"pi_loop": as_jsonable(a.pi_loop),
+                   "law": "PI on R-L phases, Kp = 2*pi*bandwidth*L, Ki = Kp*R/L, "
+                          "back-EMF speed * dtau/di"} if a.pi_loop is not None else {})
+            return {"bandwidth_a_hz": a.bandwidth_a_hz, "bandwidth_b_hz": a.bandwidth_b_hz,
+                    **pi}
         case Effect.FRICTION:
             return as_jsonable(mech.load_friction)  # type: ignore[no-any-return]
         case Effect.SENSOR_CLOCK_DRIFT:

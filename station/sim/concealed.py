@@ -57,7 +57,7 @@ from station.schedules import (
     random_characterization,
 )
 from station.sim.inprocess import record_in_process, simulate_timeline
-from station.sim.population import Bearings, draw_unit
+from station.sim.population import Bearings, draw_unit, second_mode
 
 if TYPE_CHECKING:  # the simulator side of this module must not need the diagnosis
     from station.diagnosis.fit import Fit, HeldOut
@@ -192,6 +192,11 @@ FORMS: Final = (
                forms=frozenset({EffectForm.UNEQUAL_PHASES})),
     TrialClass(frozenset({Effect.DETENT_TORQUE, Effect.RELUCTANCE_TORQUE}),
                forms=frozenset({EffectForm.UNEQUAL_PHASES})),
+    # A second mode of a declared belt, given reluctance_torque by the diagnosis; PI
+    # current loops with the back-EMF, whose lag the nominal model's damping hid.
+    TrialClass(frozenset({Effect.LOAD_RESONANCE}),
+               forms=frozenset({EffectForm.SECOND_BELT_MODE})),
+    TrialClass(frozenset({Effect.CURRENT_LOOP_LAG}), forms=frozenset({EffectForm.PI_LOOP})),
 )
 
 CLASSES: Final = (
@@ -410,6 +415,33 @@ def _coupling_within_reach(unit: UnitParams, schedule: Schedule, seed: int) -> U
     return _coupling_at(unit, low * (reach / low) ** share)
 
 
+def _second_mode_within_reach(unit: UnitParams, schedule: Schedule, seed: int) -> UnitParams:
+    """Move a second belt mode (``SecondModeParams``) that lies beyond
+    ``COUPLING_REACH_ORDER`` times the schedule's fastest speed to one drawn within it,
+    never below ``SECOND_MODE_MARGIN`` times the belt's own mode with the motor held: a
+    mode no hold reaches is physics the recording does not carry."""
+    belt = unit.mechanics.belt
+    if belt is None or belt.second_mode is None:
+        return unit
+    second = belt.second_mode
+    fastest = max(abs(h.velocity) for h in schedule.holds) / (4.0 * schedule.microsteps)
+    reach = COUPLING_REACH_ORDER * fastest
+    if second.resonance_hz <= reach:
+        return unit
+    held = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2.0 * math.pi)
+    low = max(SECOND_MODE_MARGIN * held, reach / COUPLING_SPAN)
+    share = float(np.random.default_rng([seed, 0x5EC0]).random())
+    mode_hz = low if low >= reach else low * (reach / low) ** share
+    moved = second_mode(belt, mode_hz, second.share, second.damping_ratio)
+    return replace(unit, mechanics=replace(unit.mechanics,
+                                           belt=replace(belt, second_mode=moved)))
+
+
+SECOND_MODE_MARGIN = 1.3
+"""How far above the belt's own mode (motor held) a second mode is kept: nearer, the two
+are one mode of the belt's chain split in two."""
+
+
 def _load_for(case: Case, drawn: LoadKind) -> LoadKind:
     """The drawn load, but a disk for a concealed coupling on a belt that no schedule's
     reach could hold a mode of its own on (``_coupling_within_reach``): its pulley and load
@@ -504,7 +536,9 @@ def plan_trial(case: Case) -> TrialPlan:
     """Everything a case's recording needs, drawn from its seed alone."""
     rng = np.random.default_rng([case.seed, 0x7E1A])
     load = LoadKind.DISK if rng.random() < 0.5 else LoadKind.BELT
-    if not case.first_draw:
+    if EffectForm.SECOND_BELT_MODE in case.cls.forms:
+        load = LoadKind.BELT  # the form is a belt's
+    elif not case.first_draw:
         load = _load_for(case, load)
     unit = draw_unit(case.seed, load=load, effects=case.cls.effects, unnamed=case.cls.unnamed,
                      bearings=case.bearings, forms=case.cls.forms)
@@ -514,7 +548,8 @@ def plan_trial(case: Case) -> TrialPlan:
     for _ in range(SCHEDULE_DRAWS):
         lowest = 0 if case.paper_bearings else _carrying_mA(drawn, below_hz)
         schedule = _schedule(rng, center, below_hz, lowest)
-        placed = drawn if case.first_draw else _coupling_within_reach(drawn, schedule, case.seed)
+        placed = drawn if case.first_draw else _second_mode_within_reach(
+            _coupling_within_reach(drawn, schedule, case.seed), schedule, case.seed)
         unit = _friction_within_reach(placed, schedule)
         # A first run at the widest range: the range a careful engineer would then set.
         # Holds at extreme trims may still clip there (a light disk shaken hard): the

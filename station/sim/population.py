@@ -38,6 +38,8 @@ from station.physics.params import (
     EffectForm,
     FrictionParams,
     MechanicsParams,
+    PhaseCircuit,
+    SecondModeParams,
     SensorParams,
     UnitParams,
     UnnamedEffect,
@@ -47,7 +49,7 @@ from station.physics.params import (
 from station.serials import parse_serial
 
 __all__ = ["POPULATION_SERIAL_BASE", "Bearings", "LineKind", "LineUnit", "belt_mode_motor_held_hz",
-           "draw_line_unit", "draw_unit"]
+           "draw_line_unit", "draw_unit", "second_mode"]
 
 POPULATION_SERIAL_BASE = 900000
 """Population units are labelled SN900000-SN999999, apart from the serial-derived ones tests use."""
@@ -136,6 +138,7 @@ class _Group(IntEnum):
     LINE = 18
     HEALTHY_FRICTION = 19
     EFFECT_FORMS = 20
+    SECOND_BELT_MODE = 21
 
 
 def _stream(seed: int, group: _Group) -> np.random.Generator:
@@ -251,12 +254,52 @@ def _in_form(seed: int, forms: frozenset[EffectForm], motor: MotorParams,
     dead_mA = _u(rng, *DEAD_TIME_ERROR) * rated_A * 1e3
     knee_mA = _u(rng, *DEAD_TIME_KNEE) * rated_A * 1e3
     unequal = _u(rng, *UNEQUAL_PHASES) * (1.0 if rng.random() < 0.5 else -1.0)
+    circuit = PhaseCircuit(_u(rng, *PHASE_RESISTANCE_OHM), _u(rng, *PHASE_INDUCTANCE_H))
+    if EffectForm.PI_LOOP in forms:
+        amplifier = dataclasses.replace(amplifier, pi_loop=circuit)
     if EffectForm.DEAD_TIME in forms:
         amplifier = dataclasses.replace(amplifier, distortion_a=(), distortion_b=(),
                                         dead_time_mA=dead_mA, dead_time_knee_mA=knee_mA)
     if EffectForm.UNEQUAL_PHASES in forms:
         motor = dataclasses.replace(motor, L1_unequal=unequal)
     return motor, amplifier
+
+
+PHASE_RESISTANCE_OHM = (0.8, 4.0)
+PHASE_INDUCTANCE_H = (1.5e-3, 8.0e-3)
+"""A hybrid stepper's phase as a PI current loop sees it (datasheets of NEMA 17 to 23
+motors at 1-3 A): R/L 100-2,700 rad/s, so the loop's zero sits anywhere from well below
+its bandwidth to above it."""
+
+SECOND_MODE_SHARE = (0.3, 0.7)
+"""Share of a belt's load inertia beyond a second compliance (``SecondModeParams``)."""
+SECOND_MODE_ABOVE_BELT = (1.5, 4.0)
+"""The second mode, with the rest of the load held, in multiples of the belt's own mode
+with the motor held: a bracket or shaft stiffer than the belt that drives it."""
+
+
+def second_mode(belt: BeltParams, resonance_hz: float, share: float, zeta: float
+                ) -> SecondModeParams:
+    """A second compliance beyond ``belt`` whose part of the load swings at
+    ``resonance_hz`` with the rest held."""
+    beyond = share * belt.load_inertia_kgm2
+    k = (2.0 * math.pi * resonance_hz) ** 2 * beyond
+    return SecondModeParams(share=share, resonance_hz=resonance_hz, damping_ratio=zeta,
+                            stiffness_Nm_per_rad=k,
+                            damping_Nms_per_rad=2.0 * zeta * math.sqrt(k * beyond))
+
+
+def _belt_in_form(seed: int, forms: frozenset[EffectForm], belt: BeltParams) -> BeltParams:
+    """``belt`` with a second mode beyond it when ``load_resonance`` takes that form (drawn
+    whether used or not, from a stream of its own)."""
+    rng = _stream(seed, _Group.SECOND_BELT_MODE)
+    share = _u(rng, *SECOND_MODE_SHARE)
+    held_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2.0 * math.pi)
+    f2 = held_hz * _log_u(rng, *SECOND_MODE_ABOVE_BELT)
+    zeta = _u(rng, 0.02, 0.08)
+    if EffectForm.SECOND_BELT_MODE not in forms:
+        return belt
+    return dataclasses.replace(belt, second_mode=second_mode(belt, f2, share, zeta))
 
 
 def _loop_bandwidths(seed: int) -> tuple[float, float]:
@@ -425,6 +468,9 @@ def draw_unit(
     disk, disk_radius = _disk(seed)
     belt, belt_radius = _belt(seed, base.rotor_inertia_kgm2)
     is_belt = load is LoadKind.BELT
+    if EffectForm.SECOND_BELT_MODE in forms and not is_belt:
+        raise ValueError("a second belt mode needs a belt")
+    belt = _belt_in_form(seed, forms, belt)
     ratio = belt.reduction if is_belt else 1.0
     motor_speed = 2.0 * math.pi * NOMINAL_ELECTRICAL_HZ / base.rotor_teeth
     holding_load = holding / ratio
@@ -444,7 +490,8 @@ def draw_unit(
         belt=belt if is_belt else None,
         load_bearing=load_bearing if is_belt else None,
         load_friction=load_friction if Effect.FRICTION in on else None,
-        coupling=coupling if Effect.LOAD_RESONANCE in on else None,
+        coupling=(coupling if Effect.LOAD_RESONANCE in on
+                  and EffectForm.SECOND_BELT_MODE not in forms else None),
     )
 
     sensor_rng = _stream(seed, _Group.SENSOR)

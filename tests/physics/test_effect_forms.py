@@ -1,4 +1,5 @@
-"""Effects in the other forms the world makes them: a bridge's dead time, unequal phases."""
+"""Effects in the other forms the world makes them: a bridge's dead time, unequal phases,
+a second mode beyond a declared belt."""
 
 from __future__ import annotations
 
@@ -10,15 +11,29 @@ import pytest
 
 from station.core import Effect, LoadKind, Trims
 from station.physics.motor import torque, torque_numerical
-from station.physics.params import AmplifierParams, EffectForm, UnitParams, derive_unit
+from station.physics.params import (
+    AmplifierParams,
+    EffectForm,
+    PhaseCircuit,
+    UnitParams,
+    derive_unit,
+)
 from station.physics.plant import (
     STAIRCASE_LAG_MICROSTEPS,
     DriveCommand,
     Plant,
+    build_chain,
     commanded_currents_A,
+    modal_analysis,
 )
 from station.sim.concealed import CLASSES, FORMS, TrialClass
-from station.sim.population import DEAD_TIME_ERROR, UNEQUAL_PHASES, draw_unit
+from station.sim.population import (
+    DEAD_TIME_ERROR,
+    SECOND_MODE_ABOVE_BELT,
+    SECOND_MODE_SHARE,
+    UNEQUAL_PHASES,
+    draw_unit,
+)
 
 M = 256
 
@@ -102,7 +117,7 @@ def test_a_drawn_form_replaces_the_default_and_leaves_every_other_draw_as_it_was
     effects = frozenset({Effect.CURRENT_DISTORTION, Effect.RELUCTANCE_TORQUE})
     plain = draw_unit(31, load=LoadKind.BELT, effects=effects)
     formed = draw_unit(31, load=LoadKind.BELT, effects=effects,
-                       forms=frozenset(EffectForm))
+                       forms=frozenset({EffectForm.DEAD_TIME, EffectForm.UNEQUAL_PHASES}))
     rated_mA = plain.rated_current_mA
     assert plain.amplifier.dead_time_mA == 0.0 and plain.amplifier.distortion_a
     assert formed.amplifier.distortion_a == formed.amplifier.distortion_b == ()
@@ -115,6 +130,40 @@ def test_a_drawn_form_replaces_the_default_and_leaves_every_other_draw_as_it_was
                    distortion_b=plain.amplifier.distortion_b, dead_time_mA=0.0,
                    dead_time_knee_mA=plain.amplifier.dead_time_knee_mA) == plain.amplifier
     assert (formed.mechanics, formed.sensor) == (plain.mechanics, plain.sensor)
+
+
+def test_a_second_belt_mode_splits_the_load_beyond_the_belt_and_rings_where_drawn() -> None:
+    """The form puts a compliance beyond the belt, not at the rotor: the chain is rotor and
+    pulley, the belt, the load's near part, its own compliance, the part the sensor is on;
+    no coupling at the rotor; and with the rest of the load held, that part rings at the
+    drawn frequency, above the belt's own mode."""
+    effects = frozenset({Effect.LOAD_RESONANCE})
+    plain = draw_unit(31, load=LoadKind.BELT, effects=effects)
+    formed = draw_unit(31, load=LoadKind.BELT, effects=effects,
+                       forms=frozenset({EffectForm.SECOND_BELT_MODE}))
+    belt, second = formed.mechanics.belt, None
+    assert belt is not None and plain.mechanics.belt is not None
+    second = belt.second_mode
+    assert second is not None and formed.mechanics.coupling is None
+    assert plain.mechanics.coupling is not None and plain.mechanics.belt.second_mode is None
+    assert SECOND_MODE_SHARE[0] <= second.share <= SECOND_MODE_SHARE[1]
+    held = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2 * math.pi)
+    assert SECOND_MODE_ABOVE_BELT[0] <= second.resonance_hz / held <= SECOND_MODE_ABOVE_BELT[1]
+    chain = build_chain(formed)
+    assert chain.ratios == (belt.reduction, 1.0)
+    assert sum(chain.inertias[1:]) == pytest.approx(belt.load_inertia_kgm2)
+    beyond = chain.inertias[2]
+    assert math.sqrt(second.stiffness_Nm_per_rad / beyond) / (2 * math.pi) == pytest.approx(
+        second.resonance_hz)
+    # One more mode than the belt alone has, and the highest above the second mode's own.
+    plain_modes = modal_analysis(replace(formed, mechanics=replace(
+        formed.mechanics, belt=replace(belt, second_mode=None))), 1000.0)
+    modes = modal_analysis(formed, 1000.0)
+    assert len(modes) == len(plain_modes) + 1
+    assert modes[-1].frequency_hz > second.resonance_hz
+    with pytest.raises(ValueError, match="belt"):
+        draw_unit(31, load=LoadKind.DISK, effects=effects,
+                  forms=frozenset({EffectForm.SECOND_BELT_MODE}))
 
 
 def test_a_form_of_an_id_the_unit_does_not_have_is_refused() -> None:
@@ -138,3 +187,59 @@ def test_the_benchmark_draws_every_form_and_each_class_is_labelled_apart() -> No
     assert {f for cls in FORMS for f in cls.forms} == set(EffectForm)
     labels = [cls.label for cls in CLASSES]
     assert len(labels) == len(set(labels))
+
+
+def _pi_currents(bandwidth_hz: float, circuit: PhaseCircuit, kt: float, speed: float,
+                 electrical_hz: float, periods: int, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Phase A's current and its command through the kernel's PI loop, the rotor turning
+    at ``speed`` (rad/s, an inertia so large that it never changes) and the drive's angle
+    at ``electrical_hz``: one SYNC period of ``periods`` electrical periods, sampled every
+    step."""
+    from station.physics import kernel as k_  # noqa: PLC0415 (the kernel's layout)
+
+    c = np.zeros(k_.N_CONSTANTS)
+    c[k_.H], c[k_.NR], c[k_.KT] = h, 50.0, kt
+    wb = 2.0 * math.pi * bandwidth_hz
+    c[k_.LA0:k_.LA2 + 1] = c[k_.LB0:k_.LB2 + 1] = (
+        wb, circuit.resistance_ohm / circuit.inductance_H, 1.0 / circuit.inductance_H)
+    c[k_.IW0] = c[k_.IWL] = 1.0
+    c[k_.J0] = c[k_.J1] = c[k_.JL] = 1e12  # the rotor's speed stays as it was set
+    sw = np.zeros(k_.N_SWITCHES, dtype=np.int64)
+    sw[k_.NDOF], sw[k_.LAGGED], sw[k_.PI_LOOP] = 1, 1, 1
+    cmd = np.zeros(k_.N_COMMAND)
+    cmd[k_.ENABLED], cmd[k_.KX], cmd[k_.FA], cmd[k_.FB] = 1.0, 1.0, 1.0, 1.0
+    cmd[k_.PV] = 2.0 * math.pi * electrical_hz
+    state = np.zeros(k_.N_STATE)
+    state[k_.OM0] = speed
+    empty = np.zeros((0, k_.TABLE_SIZE + 1))
+    n = round(periods / (electrical_hz * h))
+    out_i, out_u = np.zeros(n), np.zeros(n)
+    for j in range(n):
+        # One step at a time, so that each step's current can be read.
+        cmd[k_.P0] = cmd[k_.PV] * j * h
+        steps = np.array([[0.0, 0.0, 0.0]])
+        k_.integrate(c, sw, cmd, state, empty, empty, np.zeros(0), steps, np.zeros(1))
+        out_i[j], out_u[j] = state[k_.I_A], math.cos(cmd[k_.P0])
+    return out_i, out_u
+
+
+def test_a_pi_loop_follows_its_command_as_a_first_order_lag_and_rejects_back_emf_as_tuned(
+) -> None:
+    """Command to current is the first-order lag of the loop's bandwidth whatever R and L
+    (the tuning puts the controller's zero on the phase's pole); the back-EMF, speed times
+    ∂τ/∂i = −kt·sin θe, leaves a current of −e·s/(L(s + ωb)(s + R/L)) on top."""
+    circuit = PhaseCircuit(2.0, 4e-3)
+    bandwidth, f_e, h = 120.0, 30.0, 2e-6
+    w = 2.0 * math.pi * f_e
+    wb, r = 2.0 * math.pi * bandwidth, circuit.resistance_ohm / circuit.inductance_H
+    s = 1j * w
+    lag = wb / (s + wb)
+    for speed, kt in ((0.0, 0.4), (w / 50.0, 0.4)):
+        current, _ = _pi_currents(bandwidth, circuit, kt, speed, f_e, 12, h)
+        t = np.arange(current.size) * h
+        last = t >= t[-1] - 2.0 / f_e  # two periods, long after the loop settled
+        phasor = 2.0 * np.mean(current[last] * np.exp(-1j * w * t[last]))
+        # The rotor's angle turns with the drive's here (θe = ω·t): e_a = −kt·speed·sin θe.
+        emf = -kt * speed * (-1j)  # sin θe is Re(−j·e^{jθe})
+        expected = lag * 1.0 - emf * s / (circuit.inductance_H * (s + wb) * (s + r))
+        assert abs(phasor - expected) < 0.01 * abs(expected), (speed, phasor, expected)
