@@ -223,6 +223,7 @@ class Model:
         self._currents: Memo[tuple[NDArray[np.float64], NDArray[np.float64]]] = self._memo(
             self.keys(Role.CURRENTS))
         self._residuals: Memo[NDArray[np.float64]] = Memo(np.arange(self.layout.size))
+        self._pieces: dict[str, Memo[Any]] = {}
         self._linear_memo: Memo[Linearised] = Memo(np.arange(self.layout.size))
         self.torque_index = self._memo(self.keys(Role.TORQUE)).index
         # The torque made and the error's step on the motion at p: the residuals and the
@@ -259,6 +260,15 @@ class Model:
         out: NDArray[np.complex128] = np.exp(
             1j * np.outer(self.current_orders, 2.0 * np.pi * np.arange(n) / n))
         return out
+
+    def kept(self, piece: str, role: Role) -> Memo[Any]:
+        """A memo for an effect's own piece of the model, keyed on what ``role`` reads: a
+        hook that needs the same piece twice at a point (a dead time's currents before
+        it, for the currents and for their bases) makes it once."""
+        memo = self._pieces.get(piece)
+        if memo is None:
+            memo = self._pieces[piece] = self._memo(self.keys(role))
+        return memo
 
     def _memo(self, names: tuple[str, ...]) -> Memo[_T]:
         """A memo keyed on the named blocks this model has."""

@@ -67,10 +67,14 @@ def current_wave(model: Model, p: Params) -> tuple[Phasors, Phasors]:
 
 
 def _before(model: Model, p: Params) -> tuple[Grid, Grid]:
-    """Each phase's current before its dead time, on the current role's finer grid."""
-    dc_a, ac_a, dc_b, ac_b = model.current_coefficients(p)
-    fine = model.fine_synth
-    return dc_a + (ac_a @ fine).real, dc_b + (ac_b @ fine).real
+    """Each phase's current before its dead time, on the current role's finer grid (kept:
+    the currents, their dead time's turns and its share of the bases all start from it)."""
+    def made() -> tuple[Grid, Grid]:
+        dc_a, ac_a, dc_b, ac_b = model.current_coefficients(p)
+        fine = model.fine_synth
+        return dc_a + (ac_a @ fine).real, dc_b + (ac_b @ fine).real
+    out: tuple[Grid, Grid] = model.kept("dead_time_before", Role.CURRENTS).get(p, made)
+    return out
 
 
 def dead_time_taken(model: Model, p: Params) -> tuple[Grid, Grid]:
@@ -86,10 +90,13 @@ def dead_time_taken(model: Model, p: Params) -> tuple[Grid, Grid]:
 def dead_time_turns(model: Model, p: Params) -> tuple[Grid, Grid]:
     """tanh(i/knee) of each phase's current before its dead time, on the grid: the shape a
     dead-time error of one ampere takes, band-limited (``Model.band_limited``)."""
-    before_a, before_b = _before(model, p)
-    knee = dead_time_knee_A(model.obs)
-    return (model.band_limited(np.tanh(before_a / knee)),
-            model.band_limited(np.tanh(before_b / knee)))
+    def made() -> tuple[Grid, Grid]:
+        before_a, before_b = _before(model, p)
+        knee = dead_time_knee_A(model.obs)
+        return (model.band_limited(np.tanh(before_a / knee)),
+                model.band_limited(np.tanh(before_b / knee)))
+    out: tuple[Grid, Grid] = model.kept("dead_time_turns", Role.CURRENTS).get(p, made)
+    return out
 
 
 def current_made(model: Model, p: Params, i_a: Grid, i_b: Grid) -> tuple[Grid, Grid]:
