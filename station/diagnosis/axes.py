@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,6 +31,9 @@ from numpy.typing import NDArray
 from station.analysis.timeline import Timeline
 from station.core import SATURATED_COUNTS, Axis
 from station.diagnosis.observations import ConditionKey, Observations, OtherAxis, radial_ripple
+
+if TYPE_CHECKING:
+    from station.diagnosis.model import Model
 
 COUPLING_TOLERANCE = 0.03
 """In-phase share of the tangential ripple an aligned sensor may show on another axis:
@@ -230,3 +233,26 @@ def _cells(obs: Observations, other: OtherAxis, left: NDArray[np.complex128],
                 float(np.sqrt(np.mean(np.abs(other.phasors[here, k]) ** 2))),
                 float(np.sqrt(np.mean(np.abs(obs.phasors[here, k]) ** 2)))))
     return tuple(cells)
+
+
+def measured(model: Model, p: NDArray[np.float64]) -> tuple[NDArray[np.complex128],
+                                                    NDArray[np.complex128] | None]:
+    """The tangential harmonics as the fixture made them, orders 1..K and beyond:
+    the recording's own, with the sensor's bend undone when the model has one."""
+    below, above = model.obs.phasors, model.beyond
+    k = model.obs.orders
+    if model.radial is not None:
+        # A turned element reads cos α·a_t + sin α·a_r: the radial part taken out, and
+        # the cos α with it (the radius is known, so the swing fixes the scale).
+        mix = model.scalar(p, "axis_mix")
+        turn = math.sqrt(max(1.0 - mix * mix, 1e-6))
+        below = (below - mix * model.radial[:, :k]) / turn
+        if above is not None:
+            above = (above - mix * model.radial[:, k:]) / turn
+    if model.bend is not None:
+        c2, c3 = model.block(p, "sensor_bend")
+        undo = c2 * model.bend[0] + c3 * model.bend[1]
+        below = below - undo[:, :k]
+        if above is not None:
+            above = above - undo[:, k:]
+    return below, above

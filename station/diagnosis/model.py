@@ -51,7 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from station.core import GAIN_UNITY
-from station.diagnosis import balance, chain, effects, jacobian
+from station.diagnosis import axes, balance, chain, effects, jacobian
 from station.diagnosis.effects import friction
 from station.diagnosis.hooks import Hooks, Role
 from station.diagnosis.layout import Block, BlockKind, ChainKind, Layout, ModelSpec
@@ -471,28 +471,6 @@ class Model:
         self._last = (p.copy(), out)
         return out
 
-    def measured(self, p: NDArray[np.float64]) -> tuple[NDArray[np.complex128],
-                                                        NDArray[np.complex128] | None]:
-        """The tangential harmonics as the fixture made them, orders 1..K and beyond:
-        the recording's own, with the sensor's bend undone when the model has one."""
-        below, above = self.obs.phasors, self.beyond
-        k = self.obs.orders
-        if self.radial is not None:
-            # A turned element reads cos α·a_t + sin α·a_r: the radial part taken out, and
-            # the cos α with it (the radius is known, so the swing fixes the scale).
-            mix = self.scalar(p, "axis_mix")
-            turn = math.sqrt(max(1.0 - mix * mix, 1e-6))
-            below = (below - mix * self.radial[:, :k]) / turn
-            if above is not None:
-                above = (above - mix * self.radial[:, k:]) / turn
-        if self.bend is not None:
-            c2, c3 = self.block(p, "sensor_bend")
-            undo = c2 * self.bend[0] + c3 * self.bend[1]
-            below = below - undo[:, :k]
-            if above is not None:
-                above = above - undo[:, k:]
-        return below, above
-
     def load_motion(self, p: NDArray[np.float64]) -> tuple[
             NDArray[np.complex128], NDArray[np.complex128], NDArray[np.complex128] | None]:
         """``_load_motion`` at ``p``, kept (the sensor's and the measurement's pieces)."""
@@ -503,7 +481,7 @@ class Model:
         """The sensor's response, and the load's acceleration per order it says the
         measurement was, below and above the modelled orders."""
         sensor = self.sensor_response(p)
-        below, beyond = self.measured(p)
+        below, beyond = axes.measured(self, p)
         alpha = below / (sensor * self.radius)
         above = (None if beyond is None
                  else beyond / (self.sensor_response(p, beyond=True) * self.radius))

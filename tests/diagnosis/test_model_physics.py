@@ -24,8 +24,8 @@ from station.analysis.harmonics import demodulate
 from station.analysis.pipeline import measure, tangential_signal
 from station.analysis.segments import ChainDecay
 from station.core import Effect
+from station.diagnosis import axes, chain, diagnose, floors, observations
 from station.diagnosis import candidates as candidates_module
-from station.diagnosis import chain, diagnose, floors, observations
 from station.diagnosis import fit as fit_module
 from station.diagnosis import nominal as nominal_module
 from station.diagnosis.candidates import (
@@ -895,7 +895,7 @@ def test_friction_is_evaluated_on_the_whole_measured_velocity_orders_above_8_inc
                                     nominal.free)
                   for effects in (frozenset({Effect.FRICTION}), case.cls.effects)}
     model, p = fitted[case.cls.effects].model, fitted[case.cls.effects].params
-    below, above = model.measured(p)
+    below, above = axes.measured(model, p)
     assert above is not None
     sensor = model.sensor_response(p)
     whole = np.concatenate([below / sensor, above / model.sensor_response(p, beyond=True)],
