@@ -102,15 +102,6 @@ class Hooks:
     """The currents as the bridge makes them from the commanded ones, on the grid."""
     current_kept: Callable[[Model, Params, Kept], Kept] | None = None
     """``current_made``'s derivative, as what a change of a phase's current keeps."""
-    current_motion: Callable[[Model, Params, Motion, Grid], tuple[Grid, Grid]] | None = None
-    """The currents as the loops make them against the motor's back-EMF, on the measured
-    motion (the rotor's angle in ``Motion``, its mechanical speed on the grid given): a
-    current that depends on the motion, so every Jacobian column that moves the motion
-    is differenced whole."""
-    current_motion_response: Callable[[Model, Params, Motion, Phasors], Phasors] | None = None
-    """The torque's change per order through ``current_motion``'s currents for a change of
-    the rotor's swing (mechanical rad per order, (…, S, K)): what the Newton step needs
-    of them (``Model.step_matrix``)."""
 
     # The torque: τ = mod·(kt·magnet + cogging) + beside.
     magnet: Callable[[Model, Params, Motion, Grid, Grid], tuple[Grid, Grid]] | None = None

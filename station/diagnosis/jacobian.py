@@ -212,13 +212,10 @@ def motion_columns(model: Model, p: NDArray[np.float64], points: list[NDArray[np
                                                  strict=True)]
     mirrored = [model.inputs(x, c) for x, c in zip(opposite, chains[len(points):],
                                                    strict=True)]
-    # Currents made on the motion (a loop against the back-EMF) move with every input.
-    on_motion = bool(model.each("current_motion"))
     whole = [i for i, (x, q) in enumerate(zip(inputs, points, strict=True))
-             if on_motion or not (np.array_equal(q[index], p[index])
-                                  and np.array_equal(x.i_a, here.i_a)
-                                  and np.array_equal(x.i_b, here.i_b)
-                                  and np.array_equal(x.modulation, here.modulation))]
+             if not (np.array_equal(q[index], p[index]) and np.array_equal(x.i_a, here.i_a)
+                     and np.array_equal(x.i_b, here.i_b)
+                     and np.array_equal(x.modulation, here.modulation))]
     h = np.asarray(steps, dtype=np.float64)
 
     def d(pick: Callable[[Inputs], NDArray[Any]]) -> NDArray[Any]:

@@ -43,7 +43,6 @@ asks which it holds.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 from functools import cached_property, reduce
 from typing import Any, TypeVar
 
@@ -498,16 +497,6 @@ class Model:
         sin_te, cos_te = np.sin(te), np.cos(te)
         first = Motion(x.alpha, x.sensor, transfer, x.friction, x.friction_slope, te, sin_te,
                        cos_te, x.i_a, x.i_b, x.modulation, x.taken, np.zeros(self.obs.count))
-        hooks = self.each("current_motion")
-        if hooks:
-            # The rotor's mechanical speed on the grid: its mean and the swing's.
-            speed = self.obs.omega[:, None] / self.rotor_teeth + ((self.jw * theta)
-                                                                 @ self.synth).real
-            if x.swing_above is not None:
-                speed = speed + ((self.jw_beyond * x.swing_above) @ self.synth_beyond).real
-            for hook in hooks:
-                i_a, i_b = hook(self, p, first, speed)
-                first = replace(first, i_a=i_a, i_b=i_b)
         # One angle per segment: its grid's sines are rotated, not evaluated again (the
         # trigonometry on the grid is most of a motion's own cost).
         return first.shifted(balance.trim_lag(self, p, first))
@@ -586,12 +575,7 @@ class Model:
         basis = np.concatenate([np.eye(k), 1j * np.eye(k)]).astype(np.complex128)
         theta, need = self.rotor_response(m, basis[:, None, :])  # (2K, S, K)
         spring = real_map(self.rotor_teeth * both[:, 0], self.rotor_teeth * both[:, 1])
-        out = spring @ stacked(theta) - stacked(need)
-        for hook in self.each("current_motion_response"):
-            # Currents made on the motion move the torque with the swing too (a loop's
-            # back-EMF damps it): without it the step is near-singular at the rotor's mode.
-            out = out + stacked(hook(self, p, m, theta))
-        return np.asarray(out, dtype=np.float64)
+        return np.asarray(spring @ stacked(theta) - stacked(need), dtype=np.float64)
 
     def step(self, p: NDArray[np.float64], m: Motion, near: Step | None = None) -> Step:
         """The Newton step at ``p`` (``Step``), its derivative inverted afresh, or with
