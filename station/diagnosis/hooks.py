@@ -16,7 +16,7 @@ so that the model's arithmetic is the same whether one effect acts on a link or 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from enum import StrEnum
 from typing import TYPE_CHECKING, TypeAlias
 
@@ -134,12 +134,6 @@ class Hooks:
     """A mean load on the rotor per segment (Kt units, (S,))."""
     sensor: Callable[[Model, Params, NDArray[np.float64]], Phasors] | None = None
     """A factor on the sensor's response at orders ``k`` per segment, (S, K)."""
-
-    def acts(self) -> frozenset[str]:
-        """The hook points it fills in."""
-        return frozenset(f.name for f in fields(self)
-                         if f.name not in ("reads", "current_orders")
-                         and getattr(self, f.name) is not None)
 
 
 NO_HOOKS = Hooks()

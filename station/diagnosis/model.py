@@ -405,13 +405,13 @@ class Model:
     def kt_slopes(self, p: NDArray[np.float64], m: Motion
                   ) -> tuple[NDArray[np.float64] | float, NDArray[np.float64] | float]:
         """∂(Kt factor)/∂i_A and ∂/∂i_B, by the product rule over the effects' factors."""
-        hooks = [h for h in self.hooks if h.kt is not None]
-        factors = [h.kt(self, p, m.i_a, m.i_b) for h in hooks if h.kt is not None]
+        pairs = [(h.kt, h.kt_slope) for h in self.hooks if h.kt is not None]
+        factors = [kt(self, p, m.i_a, m.i_b) for kt, _ in pairs]
         d_a: NDArray[np.float64] | float = 0.0
         d_b: NDArray[np.float64] | float = 0.0
-        for i, hooks_i in enumerate(hooks):
-            assert hooks_i.kt_slope is not None, "a Kt factor without its slope"
-            g_a, g_b = hooks_i.kt_slope(self, p, m)
+        for i, (_, slope) in enumerate(pairs):
+            assert slope is not None, "a Kt factor without its slope"
+            g_a, g_b = slope(self, p, m)
             others = [f for j, f in enumerate(factors) if j != i]
             rest = reduce(lambda a, b: a * b, others) if others else None
             d_a = d_a + (g_a if rest is None else g_a * rest)

@@ -57,7 +57,7 @@ from station.schedules import (
     random_characterization,
 )
 from station.sim.inprocess import record_in_process, simulate_timeline
-from station.sim.population import Bearings, draw_unit, second_mode
+from station.sim.population import Bearings, belt_mode_motor_held_hz, draw_unit, second_mode
 
 if TYPE_CHECKING:  # the simulator side of this module must not need the diagnosis
     from station.diagnosis.fit import Fit, HeldOut
@@ -394,6 +394,24 @@ def _coupling_at(unit: UnitParams, mode_hz: float) -> UnitParams:
     return replace(unit, mechanics=replace(mech, coupling=moved))
 
 
+def _reach_hz(schedule: Schedule) -> float:
+    """How high a mode the schedule's strong harmonics reach: ``COUPLING_REACH_ORDER``
+    times its fastest electrical frequency."""
+    fastest = max(abs(h.velocity) for h in schedule.holds) / (4.0 * schedule.microsteps)
+    return COUPLING_REACH_ORDER * fastest
+
+
+def _drawn_within(reach: float, floor: float, key: list[int]) -> float:
+    """A mode drawn log-uniformly (from ``key``, so twins and re-draws agree) between
+    ``floor`` or ``reach``/``COUPLING_SPAN``, whichever is higher, and ``reach``; that
+    lower end itself where it is beyond reach."""
+    low = max(floor, reach / COUPLING_SPAN)
+    if low >= reach:
+        return low
+    share = float(np.random.default_rng(key).random())
+    return float(low * (reach / low) ** share)
+
+
 def _coupling_within_reach(unit: UnitParams, schedule: Schedule, seed: int) -> UnitParams:
     """Move a coupling whose own mode lies beyond ``COUPLING_REACH_ORDER`` times the
     schedule's fastest speed to a mode drawn within it (from the seed, so twins and
@@ -402,17 +420,12 @@ def _coupling_within_reach(unit: UnitParams, schedule: Schedule, seed: int) -> U
     puts such a coupling on a disk when no schedule could reach it)."""
     if unit.mechanics.coupling is None:
         return unit
-    fastest = max(abs(h.velocity) for h in schedule.holds) / (4.0 * schedule.microsteps)
-    reach = COUPLING_REACH_ORDER * fastest
+    reach = _reach_hz(schedule)
     if coupling_mode_hz(unit) <= reach:
         return unit
     belt = unit.mechanics.belt
     floor = 0.0 if belt is None else BELT_MODE_MARGIN * _belt_free_hz(belt)
-    if floor >= reach:
-        return _coupling_at(unit, floor)
-    low = max(floor, reach / COUPLING_SPAN)
-    share = float(np.random.default_rng([seed, 0xC0C0]).random())
-    return _coupling_at(unit, low * (reach / low) ** share)
+    return _coupling_at(unit, _drawn_within(reach, floor, [seed, 0xC0C0]))
 
 
 def _second_mode_within_reach(unit: UnitParams, schedule: Schedule, seed: int) -> UnitParams:
@@ -424,14 +437,11 @@ def _second_mode_within_reach(unit: UnitParams, schedule: Schedule, seed: int) -
     if belt is None or belt.second_mode is None:
         return unit
     second = belt.second_mode
-    fastest = max(abs(h.velocity) for h in schedule.holds) / (4.0 * schedule.microsteps)
-    reach = COUPLING_REACH_ORDER * fastest
+    reach = _reach_hz(schedule)
     if second.resonance_hz <= reach:
         return unit
-    held = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2.0 * math.pi)
-    low = max(SECOND_MODE_MARGIN * held, reach / COUPLING_SPAN)
-    share = float(np.random.default_rng([seed, 0x5EC0]).random())
-    mode_hz = low if low >= reach else low * (reach / low) ** share
+    mode_hz = _drawn_within(reach, SECOND_MODE_MARGIN * belt_mode_motor_held_hz(belt),
+                            [seed, 0x5EC0])
     moved = second_mode(belt, mode_hz, second.share, second.damping_ratio)
     return replace(unit, mechanics=replace(unit.mechanics,
                                            belt=replace(belt, second_mode=moved)))

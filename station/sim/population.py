@@ -294,8 +294,7 @@ def _belt_in_form(seed: int, forms: frozenset[EffectForm], belt: BeltParams) -> 
     whether used or not, from a stream of its own)."""
     rng = _stream(seed, _Group.SECOND_BELT_MODE)
     share = _u(rng, *SECOND_MODE_SHARE)
-    held_hz = math.sqrt(belt.stiffness_Nm_per_rad / belt.load_inertia_kgm2) / (2.0 * math.pi)
-    f2 = held_hz * _log_u(rng, *SECOND_MODE_ABOVE_BELT)
+    f2 = belt_mode_motor_held_hz(belt) * _log_u(rng, *SECOND_MODE_ABOVE_BELT)
     zeta = _u(rng, 0.02, 0.08)
     if EffectForm.SECOND_BELT_MODE not in forms:
         return belt
